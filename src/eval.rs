@@ -1,0 +1,354 @@
+//! Scoring a `tracks.csv` against `truth.csv`.
+//!
+//! In every frame each track row is paired with at most one truth particle and vice versa,
+//! nearest pairs first, within `radius_m` of the truth position. Only frames that the tracks file
+//! covers (its first to last frame) count, so the `M` frames at either end that a centred window
+//! cannot reach do not lower the yield.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use crate::synth::TruthRow;
+use crate::tables::TrackRow;
+
+#[derive(Debug, Clone, Copy)]
+pub struct EvalOptions {
+    /// A track row farther than this from every truth particle is a ghost, metres.
+    pub radius_m: f64,
+    /// A vector whose error exceeds this fraction of the mean speed is an outlier.
+    pub outlier_fraction: f64,
+    pub depth_bins: usize,
+    /// M of the velocity window: a truth particle-frame is *measurable* when the particle exists
+    /// from M frames before to M frames after it (a centred estimate is impossible otherwise).
+    pub window_frames: u64,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        Self {
+            radius_m: 0.02,
+            outlier_fraction: 0.2,
+            depth_bins: 5,
+            window_frames: 0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Default, PartialEq)]
+pub struct Xyz {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+impl From<Vector3<f64>> for Xyz {
+    fn from(v: Vector3<f64>) -> Self {
+        Self { x: v.x, y: v.y, z: v.z }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct DepthBin {
+    pub z_min: f64,
+    pub z_max: f64,
+    pub rows: usize,
+    pub rms_velocity_error: Xyz,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Report {
+    pub radius_m: f64,
+    pub first_frame: u64,
+    pub last_frame: u64,
+    pub track_rows: usize,
+    pub tracks: usize,
+    pub truth_rows: usize,
+    pub associated_rows: usize,
+    /// Associated rows / track rows.
+    pub association_rate: f64,
+    /// Rows with no truth particle within the radius / track rows.
+    pub ghost_rate: f64,
+    /// Rows whose only nearby truth particles were claimed by closer rows / track rows.
+    pub duplicate_rate: f64,
+    /// Associated truth particle-frames / truth particle-frames.
+    pub yield_fraction: f64,
+    pub window_frames: u64,
+    /// Truth particle-frames whose particle lives through the whole +-M window.
+    pub measurable_rows: usize,
+    /// Associated measurable particle-frames / measurable particle-frames.
+    pub measurable_yield: f64,
+    /// Truth particles associated at least once / truth particles present.
+    pub particle_coverage: f64,
+    /// Mean |velocity| of the truth over associated rows, m/s.
+    pub mean_speed_m_per_s: f64,
+    pub rms_position_error_m: Xyz,
+    pub rms_velocity_error_m_per_s: Xyz,
+    /// RMS velocity error / mean speed, per component.
+    pub relative_rms_velocity_error: Xyz,
+    pub outlier_fraction_threshold: f64,
+    pub outlier_rate: f64,
+    /// Rows agreeing with their track's most frequent truth particle / associated rows.
+    pub track_purity: f64,
+    pub by_depth: Vec<DepthBin>,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum EvalError {
+    #[error("the tracks file has no rows: nothing to score")]
+    NoTracks,
+    #[error("no truth rows in frames {first}..={last} covered by the tracks")]
+    NoTruth { first: u64, last: u64 },
+}
+
+struct Association {
+    row: TrackRow,
+    truth: TruthRow,
+}
+
+fn rms(sum_sq: Vector3<f64>, n: usize) -> Xyz {
+    if n == 0 {
+        return Xyz::default();
+    }
+    Xyz::from(sum_sq.map(|v| (v / n as f64).sqrt()))
+}
+
+pub fn evaluate(truth: &[TruthRow], tracks: &[TrackRow], options: &EvalOptions) -> Result<Report, EvalError> {
+    let first = tracks.iter().map(|t| t.frame).min().ok_or(EvalError::NoTracks)?;
+    let last = tracks.iter().map(|t| t.frame).max().ok_or(EvalError::NoTracks)?;
+    let mut truth_by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
+    for t in truth.iter().filter(|t| (first..=last).contains(&t.frame)) {
+        truth_by_frame.entry(t.frame).or_default().push(*t);
+    }
+    let truth_rows: usize = truth_by_frame.values().map(Vec::len).sum();
+    if truth_rows == 0 {
+        return Err(EvalError::NoTruth { first, last });
+    }
+    let mut rows_by_frame: BTreeMap<u64, Vec<TrackRow>> = BTreeMap::new();
+    for r in tracks {
+        rows_by_frame.entry(r.frame).or_default().push(*r);
+    }
+
+    let mut lifetimes: BTreeMap<u64, (u64, u64)> = BTreeMap::new();
+    for t in truth {
+        let life = lifetimes.entry(t.pid).or_insert((t.frame, t.frame));
+        life.0 = life.0.min(t.frame);
+        life.1 = life.1.max(t.frame);
+    }
+    let m = options.window_frames;
+    let measurable = |t: &TruthRow| {
+        lifetimes
+            .get(&t.pid)
+            .is_some_and(|&(first, last)| t.frame >= first + m && t.frame + m <= last)
+    };
+    let measurable_rows = truth_by_frame.values().flatten().filter(|t| measurable(t)).count();
+
+    let mut associations = Vec::new();
+    let mut ghosts = 0;
+    let mut duplicates = 0;
+    let empty = Vec::new();
+    for (frame, rows) in &rows_by_frame {
+        let candidates = truth_by_frame.get(frame).unwrap_or(&empty);
+        let mut pairs = Vec::new();
+        for (ri, r) in rows.iter().enumerate() {
+            let mut near = false;
+            for (ti, t) in candidates.iter().enumerate() {
+                let d = (r.position - t.position).norm();
+                if d <= options.radius_m {
+                    pairs.push((d, ri, ti));
+                    near = true;
+                }
+            }
+            ghosts += usize::from(!near);
+        }
+        pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut row_done = vec![false; rows.len()];
+        let mut truth_done = vec![false; candidates.len()];
+        for (_, ri, ti) in pairs {
+            if !row_done[ri] && !truth_done[ti] {
+                row_done[ri] = true;
+                truth_done[ti] = true;
+                associations.push(Association {
+                    row: rows[ri],
+                    truth: candidates[ti],
+                });
+            }
+        }
+        duplicates += rows.len() - row_done.iter().filter(|d| **d).count();
+    }
+    duplicates -= ghosts;
+
+    let n = associations.len();
+    let measurable_associated = associations.iter().filter(|a| measurable(&a.truth)).count();
+    let track_rows = tracks.len();
+    let mean_speed = if n == 0 {
+        0.0
+    } else {
+        associations.iter().map(|a| a.truth.velocity.norm()).sum::<f64>() / n as f64
+    };
+    let mut position_sq = Vector3::zeros();
+    let mut velocity_sq = Vector3::zeros();
+    let mut outliers = 0;
+    for a in &associations {
+        position_sq += (a.row.position - a.truth.position).map(|v| v * v);
+        let dv = a.row.velocity - a.truth.velocity;
+        velocity_sq += dv.map(|v| v * v);
+        outliers += usize::from(dv.norm() > options.outlier_fraction * mean_speed);
+    }
+    let rms_velocity = rms(velocity_sq, n);
+    let relative = |v: f64| if mean_speed > 0.0 { v / mean_speed } else { f64::NAN };
+
+    let mut pid_counts: BTreeMap<u64, BTreeMap<u64, usize>> = BTreeMap::new();
+    for a in &associations {
+        *pid_counts.entry(a.row.track_id).or_default().entry(a.truth.pid).or_default() += 1;
+    }
+    let dominant: usize = pid_counts.values().map(|c| c.values().copied().max().unwrap_or(0)).sum();
+    let present: std::collections::BTreeSet<u64> = truth_by_frame.values().flatten().map(|t| t.pid).collect();
+    let covered: std::collections::BTreeSet<u64> = associations.iter().map(|a| a.truth.pid).collect();
+    let tracks_count = tracks.iter().map(|t| t.track_id).collect::<std::collections::BTreeSet<_>>().len();
+
+    let mut by_depth = Vec::new();
+    if n > 0 && options.depth_bins > 0 {
+        let z_min = associations.iter().map(|a| a.truth.position.z).fold(f64::MAX, f64::min);
+        let z_max = associations.iter().map(|a| a.truth.position.z).fold(f64::MIN, f64::max);
+        let width = ((z_max - z_min) / options.depth_bins as f64).max(1e-12);
+        let mut sums = vec![(Vector3::zeros(), 0usize); options.depth_bins];
+        for a in &associations {
+            let bin = (((a.truth.position.z - z_min) / width) as usize).min(options.depth_bins - 1);
+            sums[bin].0 += (a.row.velocity - a.truth.velocity).map(|v| v * v);
+            sums[bin].1 += 1;
+        }
+        for (i, (sq, count)) in sums.into_iter().enumerate() {
+            by_depth.push(DepthBin {
+                z_min: z_min + i as f64 * width,
+                z_max: z_min + (i + 1) as f64 * width,
+                rows: count,
+                rms_velocity_error: rms(sq, count),
+            });
+        }
+    }
+
+    let fraction = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+    Ok(Report {
+        radius_m: options.radius_m,
+        first_frame: first,
+        last_frame: last,
+        track_rows,
+        tracks: tracks_count,
+        truth_rows,
+        associated_rows: n,
+        association_rate: fraction(n, track_rows),
+        ghost_rate: fraction(ghosts, track_rows),
+        duplicate_rate: fraction(duplicates, track_rows),
+        yield_fraction: fraction(n, truth_rows),
+        window_frames: m,
+        measurable_rows,
+        measurable_yield: fraction(measurable_associated, measurable_rows),
+        particle_coverage: fraction(covered.len(), present.len()),
+        mean_speed_m_per_s: mean_speed,
+        rms_position_error_m: rms(position_sq, n),
+        rms_velocity_error_m_per_s: rms_velocity,
+        relative_rms_velocity_error: Xyz {
+            x: relative(rms_velocity.x),
+            y: relative(rms_velocity.y),
+            z: relative(rms_velocity.z),
+        },
+        outlier_fraction_threshold: options.outlier_fraction,
+        outlier_rate: fraction(outliers, n),
+        track_purity: fraction(dominant, n),
+        by_depth,
+    })
+}
+
+impl fmt::Display for Report {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let pct = |v: f64| format!("{:.2} %", 100.0 * v);
+        let xyz = |v: &Xyz, scale: f64, unit: &str| {
+            format!("x {:.4} {unit}  y {:.4} {unit}  z {:.4} {unit}", v.x * scale, v.y * scale, v.z * scale)
+        };
+        writeln!(f, "frames {}..={}, {} vectors on {} tracks, {} truth particle-frames", self.first_frame, self.last_frame, self.track_rows, self.tracks, self.truth_rows)?;
+        writeln!(f, "association rate   {}  (within {} m of a truth particle, one-to-one)", pct(self.association_rate), self.radius_m)?;
+        writeln!(f, "ghost rate         {}", pct(self.ghost_rate))?;
+        writeln!(f, "duplicate rate     {}", pct(self.duplicate_rate))?;
+        writeln!(f, "yield              {}  (truth particle-frames with a vector)", pct(self.yield_fraction))?;
+        writeln!(f, "measurable yield   {}  (of the {} particle-frames whose particle lives +-{} frames around them)", pct(self.measurable_yield), self.measurable_rows, self.window_frames)?;
+        writeln!(f, "particle coverage  {}  (particles with at least one vector)", pct(self.particle_coverage))?;
+        writeln!(f, "track purity       {}", pct(self.track_purity))?;
+        writeln!(f, "mean speed         {:.4} m/s", self.mean_speed_m_per_s)?;
+        writeln!(f, "RMS position error {}", xyz(&self.rms_position_error_m, 1000.0, "mm"))?;
+        writeln!(f, "RMS velocity error {}", xyz(&self.rms_velocity_error_m_per_s, 1.0, "m/s"))?;
+        let r = &self.relative_rms_velocity_error;
+        writeln!(f, "  relative to mean speed: u {}  v {}  w {}", pct(r.x), pct(r.y), pct(r.z))?;
+        writeln!(f, "outlier rate       {}  (error > {} x mean speed)", pct(self.outlier_rate), self.outlier_fraction_threshold)?;
+        writeln!(f, "RMS velocity error by depth (world z):")?;
+        for b in &self.by_depth {
+            let e = &b.rms_velocity_error;
+            writeln!(f, "  z {:.3}..{:.3} m  {:>6} rows  u {:.4}  v {:.4}  w {:.4} m/s", b.z_min, b.z_max, b.rows, e.x, e.y, e.z)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point3;
+
+    fn truth(frame: u64, pid: u64, x: f64) -> TruthRow {
+        TruthRow {
+            frame,
+            t_s: frame as f64,
+            pid,
+            position: Point3::new(x, 0.0, 1.0),
+            velocity: Vector3::new(1.0, 0.0, 0.0),
+        }
+    }
+
+    fn row(frame: u64, track_id: u64, x: f64, u: f64) -> TrackRow {
+        TrackRow {
+            frame,
+            t_s: frame as f64,
+            track_id,
+            position: Point3::new(x, 0.0, 1.0),
+            velocity: Vector3::new(u, 0.0, 0.0),
+        }
+    }
+
+    #[test]
+    fn counts_ghosts_duplicates_yield_and_errors() {
+        let truth = vec![truth(0, 1, 0.0), truth(0, 2, 1.0), truth(1, 1, 0.1), truth(1, 2, 1.1), truth(5, 1, 0.0)];
+        let tracks = vec![
+            row(0, 7, 0.001, 1.1),  // associated, error 0.1
+            row(0, 8, 0.003, 1.0),  // duplicate of pid 1
+            row(1, 7, 0.1, 0.9),    // associated, error -0.1
+            row(1, 9, 0.5, 1.0),    // ghost
+        ];
+        let r = evaluate(&truth, &tracks, &EvalOptions::default()).expect("scored");
+        assert_eq!((r.first_frame, r.last_frame, r.truth_rows), (0, 1, 4));
+        assert_eq!(r.associated_rows, 2);
+        assert!((r.ghost_rate - 0.25).abs() < 1e-12);
+        assert!((r.duplicate_rate - 0.25).abs() < 1e-12);
+        assert!((r.yield_fraction - 0.5).abs() < 1e-12);
+        assert!((r.rms_velocity_error_m_per_s.x - 0.1).abs() < 1e-12);
+        assert!((r.relative_rms_velocity_error.x - 0.1).abs() < 1e-12);
+        assert!((r.track_purity - 1.0).abs() < 1e-12);
+        assert!((r.particle_coverage - 0.5).abs() < 1e-12);
+        assert_eq!(r.measurable_rows, 4);
+        let windowed = evaluate(&truth, &tracks, &EvalOptions { window_frames: 1, ..Default::default() }).expect("scored");
+        // pid 1 lives in frames 0, 1 and 5 (lifetime 0..=5): frame 1 is measurable, frame 0 not;
+        // pid 2 lives in frames 0..=1 only: never measurable with M = 1.
+        assert_eq!(windowed.measurable_rows, 1);
+        assert!((windowed.measurable_yield - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn empty_inputs_are_errors_not_zeros() {
+        assert_eq!(evaluate(&[], &[], &EvalOptions::default()), Err(EvalError::NoTracks));
+        assert_eq!(
+            evaluate(&[], &[row(3, 1, 0.0, 0.0)], &EvalOptions::default()),
+            Err(EvalError::NoTruth { first: 3, last: 3 })
+        );
+    }
+}

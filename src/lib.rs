@@ -1,0 +1,33 @@
+//! # mrptv: mixed-reality particle tracking velocimetry
+//!
+//! Two synchronized grayscale cameras in, 3D particle velocities out (Chivers 2023, MR-PTV).
+//!
+//! ## Layout
+//! - [`ptv`]: the algorithm, pure and synchronous (no I/O, no clock, no async). Stages in pipeline
+//!   order, each a function or a small state machine with named input and output types:
+//!   - [`ptv::detect`]: image -> [`ptv::Detection`] (centroid, diameter D, brightness B)
+//!   - rectification ([`geometry::Rectification`]): raw pixel -> virtual co-directional pixel
+//!   - [`ptv::link`]: per camera, frame n -> n+1, gives each feature a 2D track id
+//!   - [`ptv::stereo`]: left <-> right matching in the virtual pair
+//!   - triangulation ([`geometry::Rectification::triangulate`]): disparity -> point in the rig
+//!     frame, then `point_in_world = world_from_rig * point_in_rig`
+//!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity
+//!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
+//! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
+//! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
+//! - [`eval`]: scores velocities against truth.
+//! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
+//!   TOML config), read and written with errors that name file, line and field.
+//! - [`offline`]: the offline commands' work (`synth`, `process`, `demo`), shared by the binary
+//!   and the tests.
+//!
+//! Everything runs on the caller's thread; the offline reader decodes PNGs on one helper thread.
+
+pub mod config;
+pub mod eval;
+pub mod geometry;
+pub mod offline;
+pub mod ptv;
+pub mod recording;
+pub mod synth;
+pub mod tables;

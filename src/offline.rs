@@ -1,0 +1,246 @@
+//! The offline commands' work: write a synthetic recording, process a recording, or run a
+//! scenario end to end in memory. The binary adds argument parsing and progress bars only.
+
+use std::fs;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::Instant;
+
+use crate::eval::{evaluate, EvalError, EvalOptions, Report};
+use crate::ptv::{FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
+use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
+use crate::synth::{ScenarioSpec, Synthesizer, TruthRow};
+use crate::tables::{self, TrackRow};
+
+#[derive(Debug, thiserror::Error)]
+pub enum OfflineError {
+    #[error(transparent)]
+    Recording(#[from] RecordingError),
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Eval(#[from] EvalError),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> OfflineError + '_ {
+    move |source| OfflineError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SynthSummary {
+    pub frames: usize,
+    pub truth_rows: usize,
+    /// Fraction of truth particle-frames whose centre projects into both images.
+    pub visible_fraction: f64,
+}
+
+/// Writes a synthetic recording plus `truth.csv` and the scenario's suggested `mrptv.toml`.
+pub fn write_synthetic(
+    spec: ScenarioSpec,
+    out: &Path,
+    frames: usize,
+    particles: usize,
+    seed: u64,
+    mut progress: impl FnMut(usize),
+) -> Result<SynthSummary, OfflineError> {
+    let with_pose = spec.head.world_from_rig(0.0).is_some();
+    let mut writer = RecordingWriter::create(out, &spec.rig, with_pose)?;
+    let config_path = out.join("mrptv.toml");
+    let config_text = format!(
+        "# Processing parameters suggested for the '{}' scenario: {}\n# `mrptv process` reads this file when no --config is given.\n\n{}",
+        spec.scenario.name(),
+        spec.scenario.description(),
+        crate::config::to_toml(&spec.config)
+    );
+    fs::write(&config_path, config_text).map_err(io_error(&config_path))?;
+    let truth_path = out.join("truth.csv");
+    let mut truth = BufWriter::new(fs::File::create(&truth_path).map_err(io_error(&truth_path))?);
+    writeln!(truth, "{}", tables::TRUTH_HEADER).map_err(io_error(&truth_path))?;
+    let mut synth = Synthesizer::new(spec, particles, seed);
+    let mut summary = SynthSummary::default();
+    let mut visible = 0;
+    for _ in 0..frames {
+        let f = synth.next_frame();
+        let entry = FrameEntry {
+            index: f.index,
+            t_s: f.t_s,
+            world_from_rig: f.world_from_rig,
+        };
+        writer.write_frame(&entry, &f.left, &f.right)?;
+        for row in &f.truth {
+            tables::write_truth_row(&mut truth, row).map_err(io_error(&truth_path))?;
+        }
+        visible += f.visible_in_both;
+        summary.truth_rows += f.truth.len();
+        summary.frames += 1;
+        progress(summary.frames);
+    }
+    truth.flush().map_err(io_error(&truth_path))?;
+    summary.visible_fraction = if summary.truth_rows == 0 {
+        0.0
+    } else {
+        visible as f64 / summary.truth_rows as f64
+    };
+    Ok(summary)
+}
+
+/// Totals over a processing run.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RunTotals {
+    pub frames: usize,
+    pub detections_left: usize,
+    pub detections_right: usize,
+    pub matches: usize,
+    pub vectors: usize,
+    pub rejected: usize,
+    /// Time spent inside `Pipeline::push`, seconds.
+    pub pipeline_s: f64,
+}
+
+impl RunTotals {
+    fn add(&mut self, s: &FrameStats, pipeline_s: f64) {
+        self.frames += 1;
+        self.detections_left += s.detections_left;
+        self.detections_right += s.detections_right;
+        self.matches += s.matches;
+        self.vectors += s.vectors;
+        self.rejected += s.rejected;
+        self.pipeline_s += pipeline_s;
+    }
+}
+
+/// Where `process_recording` writes.
+pub struct ProcessSinks<'a> {
+    pub tracks: &'a mut dyn Write,
+    pub points: Option<&'a mut dyn Write>,
+}
+
+/// Runs a recording through the pipeline, writing `tracks.csv` and optionally `points.csv` rows
+/// (headers included). PNGs are decoded one frame ahead on a helper thread.
+pub fn process_recording(
+    recording: &Recording,
+    config: PipelineConfig,
+    sinks: ProcessSinks<'_>,
+    mut progress: impl FnMut(usize),
+) -> Result<RunTotals, OfflineError> {
+    let mut pipeline = Pipeline::new(recording.rig.clone(), config)?;
+    let out_error = |source| OfflineError::Io {
+        path: PathBuf::from("output"),
+        source,
+    };
+    let ProcessSinks { tracks, mut points } = sinks;
+    writeln!(tracks, "{}", tables::TRACKS_HEADER).map_err(out_error)?;
+    if let Some(p) = points.as_mut() {
+        writeln!(p, "{}", tables::POINTS_HEADER).map_err(out_error)?;
+    }
+    let (w, h) = (recording.rig.width as usize, recording.rig.height as usize);
+    let mut totals = RunTotals::default();
+    std::thread::scope(|scope| {
+        let (tx, rx) = mpsc::sync_channel(2);
+        scope.spawn(move || {
+            for entry in &recording.frames {
+                let loaded = recording.load(entry).map(|images| (*entry, images));
+                let failed = loaded.is_err();
+                if tx.send(loaded).is_err() || failed {
+                    break;
+                }
+            }
+        });
+        for loaded in rx {
+            let (entry, (left, right)) = loaded?;
+            let (Some(left), Some(right)) = (ImageView::new(w, h, &left), ImageView::new(w, h, &right)) else {
+                unreachable!("decode_gray_png checked the size");
+            };
+            let frame = StereoFrame {
+                index: entry.index,
+                t_s: entry.t_s,
+                world_from_rig: entry.world_from_rig,
+                left,
+                right,
+            };
+            let started = Instant::now();
+            let output = pipeline.push(&frame)?;
+            totals.add(&output.stats, started.elapsed().as_secs_f64());
+            for v in &output.vectors {
+                tables::write_track_row(tracks, v).map_err(out_error)?;
+            }
+            if let Some(p) = points.as_mut() {
+                for m in &output.points {
+                    tables::write_point_row(p, output.frame_index, output.t_s, m).map_err(out_error)?;
+                }
+            }
+            progress(totals.frames);
+        }
+        Ok::<(), OfflineError>(())
+    })?;
+    tracks.flush().map_err(out_error)?;
+    if let Some(p) = points.as_mut() {
+        p.flush().map_err(out_error)?;
+    }
+    Ok(totals)
+}
+
+/// A scenario run end to end in memory: synthesise, process, score.
+#[derive(Debug, Clone)]
+pub struct InMemoryRun {
+    pub truth: Vec<TruthRow>,
+    pub tracks: Vec<TrackRow>,
+    pub totals: RunTotals,
+    pub report: Report,
+}
+
+pub fn run_in_memory(
+    spec: ScenarioSpec,
+    config: PipelineConfig,
+    frames: usize,
+    particles: usize,
+    seed: u64,
+    eval: &EvalOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<InMemoryRun, OfflineError> {
+    let rig = spec.rig.clone();
+    let (w, h) = (rig.width as usize, rig.height as usize);
+    let mut pipeline = Pipeline::new(rig, config)?;
+    let mut synth = Synthesizer::new(spec, particles, seed);
+    let mut truth = Vec::new();
+    let mut tracks = Vec::new();
+    let mut totals = RunTotals::default();
+    for n in 0..frames {
+        let f = synth.next_frame();
+        let (Some(left), Some(right)) = (ImageView::new(w, h, &f.left), ImageView::new(w, h, &f.right)) else {
+            unreachable!("the synthesizer renders rig-sized images");
+        };
+        let frame = StereoFrame {
+            index: f.index,
+            t_s: f.t_s,
+            world_from_rig: f.world_from_rig,
+            left,
+            right,
+        };
+        let started = Instant::now();
+        let output = pipeline.push(&frame)?;
+        totals.add(&output.stats, started.elapsed().as_secs_f64());
+        tracks.extend(output.vectors.iter().map(|v| TrackRow {
+            frame: v.frame_index,
+            t_s: v.t_s,
+            track_id: v.track_id,
+            position: v.position_in_world,
+            velocity: v.velocity_in_world,
+        }));
+        truth.extend(f.truth);
+        progress(n + 1);
+    }
+    let report = evaluate(&truth, &tracks, eval)?;
+    Ok(InMemoryRun {
+        truth,
+        tracks,
+        totals,
+        report,
+    })
+}

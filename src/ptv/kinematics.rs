@@ -1,0 +1,104 @@
+//! Stage 5: velocity by moving least squares (method section 5.5, eqs. 13-15).
+//!
+//! `q(t) = a + b (t - t_n) + c (t - t_n)^2` is fitted to the positions of a window of frames; the
+//! velocity at `t_n` is `b` and the smoothed position `a`. The method centres the window on `t_n`
+//! (`+-M` frames). Times come from the frames' timestamps, so jittered frame intervals are honoured.
+
+use nalgebra::{Matrix3, Point3, Vector3};
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QuadraticFit {
+    /// Fitted position at the evaluation time (a).
+    pub position: Point3<f64>,
+    /// Fitted velocity at the evaluation time (b), units per second.
+    pub velocity: Vector3<f64>,
+    /// Root-mean-square distance of the samples from the fitted curve.
+    pub rms_residual: f64,
+}
+
+/// Least-squares quadratic through `samples` (time in seconds, position), evaluated at `t_eval_s`.
+/// `None` with fewer than three samples or when the times cannot support a quadratic.
+pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<QuadraticFit> {
+    if samples.len() < 3 {
+        return None;
+    }
+    // Times are scaled to [-1, 1] so the normal equations stay well conditioned at any frame rate.
+    let scale_s = samples
+        .iter()
+        .map(|(t, _)| (t - t_eval_s).abs())
+        .fold(0.0, f64::max);
+    if !(scale_s > 0.0) {
+        return None;
+    }
+    let mut normal = Matrix3::<f64>::zeros();
+    let mut rhs = Matrix3::<f64>::zeros();
+    for (t, p) in samples {
+        let tau = (t - t_eval_s) / scale_s;
+        let basis = Vector3::new(1.0, tau, tau * tau);
+        normal += basis * basis.transpose();
+        rhs += basis * p.coords.transpose();
+    }
+    // Rows of `coefficients` are a, b, c; columns are x, y, z.
+    let coefficients = normal.try_inverse()? * rhs;
+    let a = Vector3::new(coefficients[(0, 0)], coefficients[(0, 1)], coefficients[(0, 2)]);
+    let b = Vector3::new(coefficients[(1, 0)], coefficients[(1, 1)], coefficients[(1, 2)]) / scale_s;
+    let c = Vector3::new(coefficients[(2, 0)], coefficients[(2, 1)], coefficients[(2, 2)])
+        / (scale_s * scale_s);
+    let squared: f64 = samples
+        .iter()
+        .map(|(t, p)| {
+            let tau = t - t_eval_s;
+            (p.coords - (a + b * tau + c * tau * tau)).norm_squared()
+        })
+        .sum();
+    let fit = QuadraticFit {
+        position: Point3::from(a),
+        velocity: b,
+        rms_residual: (squared / samples.len() as f64).sqrt(),
+    };
+    (fit.position.coords.iter().chain(fit.velocity.iter()).all(|v| v.is_finite())).then_some(fit)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn central_difference_when_m_is_one() {
+        let samples = [
+            (0.0, Point3::new(0.0, 0.0, 1.0)),
+            (0.1, Point3::new(0.3, 0.0, 1.0)),
+            (0.2, Point3::new(0.5, 0.0, 1.0)),
+        ];
+        let fit = fit_quadratic(&samples, 0.1).expect("well posed");
+        assert!((fit.velocity.x - 2.5).abs() < 1e-12);
+        assert!(fit.rms_residual < 1e-12);
+    }
+
+    #[test]
+    fn too_few_or_degenerate_samples() {
+        let p = Point3::origin();
+        assert!(fit_quadratic(&[(0.0, p), (1.0, p)], 0.5).is_none());
+        assert!(fit_quadratic(&[(0.0, p), (0.0, p), (0.0, p)], 0.0).is_none());
+    }
+
+    proptest! {
+        #[test]
+        fn recovers_any_quadratic_exactly(
+            a in -5.0f64..5.0, b in -5.0f64..5.0, c in -5.0f64..5.0, m in 1usize..6, dt in 0.005f64..0.1
+        ) {
+            let samples: Vec<_> = (0..2 * m + 1)
+                .map(|i| {
+                    let t = 10.0 + i as f64 * dt;
+                    let tau = t - (10.0 + m as f64 * dt);
+                    (t, Point3::new(a + b * tau + c * tau * tau, b, -a))
+                })
+                .collect();
+            let fit = fit_quadratic(&samples, samples[m].0).expect("well posed");
+            prop_assert!((fit.velocity.x - b).abs() < 1e-6 * (1.0 + b.abs()));
+            prop_assert!(fit.velocity.y.abs() < 1e-6);
+            prop_assert!((fit.position.x - a).abs() < 1e-8 * (1.0 + a.abs()));
+        }
+    }
+}

@@ -1,0 +1,448 @@
+//! The [`Pipeline`]: owns every stage's state and turns one [`StereoFrame`] into a [`FrameOutput`].
+//!
+//! Offline processing and the live server drive this same type, so both give identical results
+//! for identical frames. Nothing in here reads a clock: time comes from frame timestamps.
+
+use std::collections::{BTreeMap, VecDeque};
+
+use nalgebra::{Isometry3, Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::detect::{DetectConfig, Detection, Detector};
+use super::kinematics::fit_quadratic;
+use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
+use super::stereo::{match_stereo, PairHistory, StereoConfig};
+use super::{ImageView, StereoFrame};
+use crate::geometry::{CalibrationError, PixelPoint, Rectification, StereoRig};
+
+/// Velocity estimation parameters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VelocityConfig {
+    /// M: frames on each side of the centre in the moving least-squares window (method: 5 on
+    /// synthetic data, 2 for the fast wind-tunnel case).
+    pub half_window_frames: usize,
+    /// Frames each side of the window may lack (method: 0, every frame seen). 1 keeps vectors
+    /// for particles hidden for a frame or just appearing, at a small cost in precision.
+    pub max_missing_per_side: usize,
+    /// Reject a vector whose track does not follow a smooth path: RMS fit residual above
+    /// `max_residual_ratio` times the depth noise expected from `disparity_sigma_px`, plus
+    /// `residual_floor_m`. A wrong stereo pair or a track that swapped particles jumps in depth.
+    /// 0 disables the check (the method).
+    pub max_residual_ratio: f64,
+    /// Disparity noise assumed by the residual check, pixels.
+    pub disparity_sigma_px: f64,
+    /// Residual always allowed, metres (covers real accelerations over the window).
+    pub residual_floor_m: f64,
+}
+
+impl Default for VelocityConfig {
+    fn default() -> Self {
+        Self {
+            half_window_frames: 5,
+            max_missing_per_side: 1,
+            max_residual_ratio: 4.0,
+            disparity_sigma_px: 0.1,
+            residual_floor_m: 0.001,
+        }
+    }
+}
+
+/// Every parameter of the pipeline; the TOML config file has one table per stage.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineConfig {
+    pub detect: DetectConfig,
+    pub link: LinkConfig,
+    pub stereo: StereoConfig,
+    pub velocity: VelocityConfig,
+}
+
+impl PipelineConfig {
+    /// The published method with none of mrptv's improvements: per-particle choices, no track
+    /// memory in stereo, no neighbour prediction, no touching-particle split, no rejection.
+    pub fn method() -> Self {
+        use super::link::Assignment;
+        let mut c = Self::default();
+        c.detect.split_touching = false;
+        c.detect.reject_border = false;
+        c.detect.max_axis_ratio = 0.0;
+        c.link.assignment = Assignment::PerParticle;
+        c.link.predict_new_from_neighbours = false;
+        c.link.max_gap_frames = 0;
+        c.velocity.max_missing_per_side = 0;
+        c.stereo.assignment = Assignment::PerParticle;
+        c.stereo.pair_memory = 0.0;
+        c.stereo.weight_row = 1.0;
+        c.velocity.max_residual_ratio = 0.0;
+        c
+    }
+
+    pub fn validate(&self) -> Result<(), PipelineError> {
+        let bad = |field: &str, reason: &str| {
+            Err(PipelineError::Config(format!("{field}: {reason}")))
+        };
+        let finite_non_negative = [
+            ("detect.split_dip_fraction", self.detect.split_dip_fraction),
+            ("link.box_half_side_px", self.link.box_half_side_px),
+            ("link.weight_diameter", self.link.weight_diameter),
+            ("link.weight_brightness", self.link.weight_brightness),
+            ("link.weight_x", self.link.weight_x),
+            ("stereo.disparity_range_fraction", self.stereo.disparity_range_fraction),
+            ("stereo.epipolar_band_fraction", self.stereo.epipolar_band_fraction),
+            ("stereo.weight_diameter", self.stereo.weight_diameter),
+            ("stereo.weight_speed", self.stereo.weight_speed),
+            ("stereo.weight_brightness", self.stereo.weight_brightness),
+            ("stereo.pair_memory", self.stereo.pair_memory),
+            ("stereo.weight_row", self.stereo.weight_row),
+            ("velocity.max_residual_ratio", self.velocity.max_residual_ratio),
+            ("velocity.disparity_sigma_px", self.velocity.disparity_sigma_px),
+            ("velocity.residual_floor_m", self.velocity.residual_floor_m),
+        ];
+        for (field, v) in finite_non_negative {
+            if !v.is_finite() || v < 0.0 {
+                return bad(field, "must be a finite number >= 0");
+            }
+        }
+        if !self.detect.contrast_c.is_finite() {
+            return bad("detect.contrast_c", "must be a finite number");
+        }
+        if self.detect.box_size_px < 3 || self.detect.box_size_px % 2 == 0 {
+            return bad("detect.box_size_px", "must be odd and >= 3");
+        }
+        if self.detect.min_area_px > self.detect.max_area_px {
+            return bad("detect.min_area_px", "must not exceed detect.max_area_px");
+        }
+        if self.stereo.pair_memory >= 1.0 {
+            return bad("stereo.pair_memory", "must be below 1 (1 would never update)");
+        }
+        if self.velocity.half_window_frames == 0 {
+            return bad("velocity.half_window_frames", "must be >= 1");
+        }
+        if self.velocity.max_missing_per_side >= self.velocity.half_window_frames {
+            return bad(
+                "velocity.max_missing_per_side",
+                "must be below velocity.half_window_frames (each side needs a sample)",
+            );
+        }
+        Ok(())
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PipelineError {
+    #[error("calibration: {0}")]
+    Calibration(#[from] CalibrationError),
+    #[error("config: {0}")]
+    Config(String),
+    #[error("frame {index}: {camera} image is {width}x{height}, calibration says {expected_width}x{expected_height}")]
+    ImageSize {
+        index: u64,
+        camera: &'static str,
+        width: usize,
+        height: usize,
+        expected_width: u32,
+        expected_height: u32,
+    },
+    #[error("frame {index}: timestamp {t_s} s is not finite or not after the previous frame's {previous_s} s")]
+    Timestamp { index: u64, t_s: f64, previous_s: f64 },
+}
+
+/// A particle matched in both cameras this frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MatchedPoint {
+    /// The 3D track this point belongs to.
+    pub track_id: u64,
+    pub point_in_world: Point3<f64>,
+    pub left_px: PixelPoint,
+    pub right_px: PixelPoint,
+    pub depth_m: f64,
+}
+
+/// A velocity estimate for one track at one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VelocityVector {
+    pub frame_index: u64,
+    pub t_s: f64,
+    pub track_id: u64,
+    /// Moving-least-squares smoothed position, world frame, metres.
+    pub position_in_world: Point3<f64>,
+    /// World frame, metres per second (head motion removed when poses are given).
+    pub velocity_in_world: Vector3<f64>,
+    pub rms_residual_m: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FrameStats {
+    pub detections_left: usize,
+    pub detections_right: usize,
+    pub matches: usize,
+    pub tracks: usize,
+    pub vectors: usize,
+    /// Vectors dropped by the smoothness check.
+    pub rejected: usize,
+}
+
+/// What one frame produced. `vectors` are for the frame `M` frames back: the centred window
+/// needs `M` frames after the one it describes.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct FrameOutput {
+    pub frame_index: u64,
+    pub t_s: f64,
+    pub detections_left: Vec<Detection>,
+    pub detections_right: Vec<Detection>,
+    pub points: Vec<MatchedPoint>,
+    pub vectors: Vec<VelocityVector>,
+    pub stats: FrameStats,
+}
+
+#[derive(Debug, Clone)]
+struct Sample {
+    /// Position in the sequence of pushed frames (frame indices may skip).
+    seq: u64,
+    frame_index: u64,
+    t_s: f64,
+    point_in_world: Point3<f64>,
+    depth_m: f64,
+    /// Neither camera's centroid was cut out of overlapping particles: fit for measuring.
+    clean: bool,
+}
+
+#[derive(Debug, Clone)]
+struct Track3d {
+    id: u64,
+    right_track: u64,
+    samples: VecDeque<Sample>,
+}
+
+pub struct Pipeline {
+    config: PipelineConfig,
+    rig: StereoRig,
+    rectification: Rectification,
+    left_detector: Detector,
+    right_detector: Detector,
+    left_linker: CameraLinker,
+    right_linker: CameraLinker,
+    pair_history: PairHistory,
+    /// Live 3D tracks keyed by their left track id.
+    tracks: BTreeMap<u64, Track3d>,
+    next_track_id: u64,
+    previous_t_s: Option<f64>,
+    /// Frames pushed so far.
+    seq: u64,
+}
+
+impl Pipeline {
+    pub fn new(rig: StereoRig, config: PipelineConfig) -> Result<Self, PipelineError> {
+        config.validate()?;
+        let rectification = Rectification::new(&rig)?;
+        Ok(Self {
+            config,
+            rig,
+            rectification,
+            left_detector: Detector::new(),
+            right_detector: Detector::new(),
+            left_linker: CameraLinker::new(),
+            right_linker: CameraLinker::new(),
+            pair_history: PairHistory::new(),
+            tracks: BTreeMap::new(),
+            next_track_id: 0,
+            previous_t_s: None,
+            seq: 0,
+        })
+    }
+
+    pub fn config(&self) -> &PipelineConfig {
+        &self.config
+    }
+
+    pub fn rig(&self) -> &StereoRig {
+        &self.rig
+    }
+
+    pub fn rectification(&self) -> &Rectification {
+        &self.rectification
+    }
+
+    fn check_image(&self, index: u64, camera: &'static str, image: &ImageView<'_>) -> Result<(), PipelineError> {
+        if image.width != self.rig.width as usize || image.height != self.rig.height as usize {
+            return Err(PipelineError::ImageSize {
+                index,
+                camera,
+                width: image.width,
+                height: image.height,
+                expected_width: self.rig.width,
+                expected_height: self.rig.height,
+            });
+        }
+        Ok(())
+    }
+
+    /// Processes one stereo frame. A rejected frame (wrong size, time going backwards) leaves the
+    /// pipeline state untouched, so the caller may report it and carry on.
+    pub fn push(&mut self, frame: &StereoFrame<'_>) -> Result<FrameOutput, PipelineError> {
+        self.check_image(frame.index, "left", &frame.left)?;
+        self.check_image(frame.index, "right", &frame.right)?;
+        let previous_s = self.previous_t_s.unwrap_or(f64::NEG_INFINITY);
+        if !frame.t_s.is_finite() || frame.t_s <= previous_s {
+            return Err(PipelineError::Timestamp {
+                index: frame.index,
+                t_s: frame.t_s,
+                previous_s,
+            });
+        }
+        self.previous_t_s = Some(frame.t_s);
+        self.seq += 1;
+        let seq = self.seq;
+
+        let mut out = FrameOutput {
+            frame_index: frame.index,
+            t_s: frame.t_s,
+            ..Default::default()
+        };
+        self.left_detector
+            .detect(frame.left, &self.config.detect, &mut out.detections_left);
+        self.right_detector
+            .detect(frame.right, &self.config.detect, &mut out.detections_right);
+
+        let rect = &self.rectification;
+        let (left_features, left_raw) = rectify(&out.detections_left, |p| rect.left_to_rect(p));
+        let (right_features, right_raw) = rectify(&out.detections_right, |p| rect.right_to_rect(p));
+        let scale = CostScale {
+            half_width_px: rect.half_width_px,
+            half_height_px: rect.half_height_px,
+        };
+        let left = self.left_linker.push(&left_features, scale, &self.config.link);
+        let right = self.right_linker.push(&right_features, scale, &self.config.link);
+        let pairs = match_stereo(&left, &right, scale, &mut self.pair_history, &self.config.stereo);
+
+        let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
+        let mut tracks = BTreeMap::new();
+        for &(li, ri) in &pairs {
+            let (l, r): (&LinkedFeature, &LinkedFeature) = (&left[li], &right[ri]);
+            let Some(t) = rect.triangulate(l.feature.rect, r.feature.rect) else {
+                continue;
+            };
+            let sample = Sample {
+                seq,
+                frame_index: frame.index,
+                t_s: frame.t_s,
+                point_in_world: world_from_rig * t.point_in_rig,
+                depth_m: t.depth_m,
+                clean: !(left_raw[li].from_overlap || right_raw[ri].from_overlap),
+            };
+            let mut track = match self.tracks.remove(&l.track_id) {
+                // Without track-consistent pairing (the method) a left track keeps its 3D track
+                // whatever its partner; with it, a new partner means a new particle.
+                Some(old) if old.right_track == r.track_id || self.config.stereo.pair_memory == 0.0 => old,
+                _ => {
+                    self.next_track_id += 1;
+                    Track3d {
+                        id: self.next_track_id,
+                        right_track: r.track_id,
+                        samples: VecDeque::new(),
+                    }
+                }
+            };
+            track.right_track = r.track_id;
+            out.points.push(MatchedPoint {
+                track_id: track.id,
+                point_in_world: sample.point_in_world,
+                left_px: left_raw[li].centroid,
+                right_px: right_raw[ri].centroid,
+                depth_m: t.depth_m,
+            });
+            track.samples.push_back(sample);
+            let oldest = seq.saturating_sub(2 * self.config.velocity.half_window_frames as u64);
+            while track.samples.front().is_some_and(|s| s.seq < oldest) {
+                track.samples.pop_front();
+            }
+            tracks.insert(l.track_id, track);
+        }
+        // A 3D track unseen this frame survives a gap as long as its left track may coast.
+        let max_gap = u64::from(self.config.link.max_gap_frames);
+        for (left_track, track) in std::mem::take(&mut self.tracks) {
+            let last_seq = track.samples.back().map_or(0, |s| s.seq);
+            if !tracks.contains_key(&left_track) && seq - last_seq <= max_gap {
+                tracks.insert(left_track, track);
+            }
+        }
+        self.tracks = tracks;
+
+        for track in self.tracks.values() {
+            match self.centred_vector(track, seq) {
+                Some(Ok(v)) => out.vectors.push(v),
+                Some(Err(())) => out.stats.rejected += 1,
+                None => {}
+            }
+        }
+        out.stats.detections_left = out.detections_left.len();
+        out.stats.detections_right = out.detections_right.len();
+        out.stats.matches = out.points.len();
+        out.stats.tracks = self.tracks.len();
+        out.stats.vectors = out.vectors.len();
+        Ok(out)
+    }
+
+    /// The centred estimate for the frame `M` frames back, if the track's window supports one;
+    /// `Err` if rejected as rough. The centre frame must be seen, and each side may miss at most
+    /// `max_missing_per_side` frames (to a gap, or to the track's start or end).
+    fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<VelocityVector, ()>> {
+        let m = self.config.velocity.half_window_frames as u64;
+        let centre_seq = seq.checked_sub(m)?;
+        // Samples cut out of overlapping particles keep the track's identity but do not enter the
+        // fit: their centroids are biased. The fit needs no sample at the centre itself, so a
+        // particle hidden in an overlap at the centre frame still gets a vector from its
+        // neighbours in time.
+        let clean = || track.samples.iter().filter(|s| s.clean);
+        let centre = track.samples.iter().find(|s| s.seq == centre_seq)?;
+        let before = clean().filter(|s| s.seq < centre_seq).count() as u64;
+        let after = clean().filter(|s| s.seq > centre_seq).count() as u64;
+        let needed = m.saturating_sub(self.config.velocity.max_missing_per_side as u64).max(1);
+        if before < needed || after < needed {
+            return None;
+        }
+        let points: Vec<(f64, Point3<f64>)> = clean().map(|s| (s.t_s, s.point_in_world)).collect();
+        let fit = fit_quadratic(&points, centre.t_s)?;
+        let v = &self.config.velocity;
+        if v.max_residual_ratio > 0.0 {
+            let expected = self
+                .rectification
+                .depth_sigma_m(centre.depth_m, v.disparity_sigma_px);
+            if fit.rms_residual > v.max_residual_ratio * expected + v.residual_floor_m {
+                return Some(Err(()));
+            }
+        }
+        Some(Ok(VelocityVector {
+            frame_index: centre.frame_index,
+            t_s: centre.t_s,
+            track_id: track.id,
+            position_in_world: fit.position,
+            velocity_in_world: fit.velocity,
+            rms_residual_m: fit.rms_residual,
+        }))
+    }
+}
+
+/// Rectifies detections, dropping any whose centroid the lens model cannot undistort; returns the
+/// features and, index for index, the detections they came from.
+fn rectify<'d>(
+    detections: &'d [Detection],
+    to_rect: impl Fn(PixelPoint) -> Option<crate::geometry::RectPoint>,
+) -> (Vec<Feature>, Vec<&'d Detection>) {
+    detections
+        .iter()
+        .filter_map(|d| {
+            to_rect(d.centroid).map(|rect| {
+                (
+                    Feature {
+                        rect,
+                        diameter_px: d.diameter_px,
+                        brightness: d.brightness,
+                    },
+                    d,
+                )
+            })
+        })
+        .unzip()
+}
