@@ -8,7 +8,10 @@ use mrptv::synth::{Scenario, ScenarioSpec, Synthesizer};
 
 const FRAMES: usize = 32;
 
-fn frames(particles: usize) -> (ScenarioSpec, Vec<(Vec<u8>, Vec<u8>)>) {
+/// Left and right pixels of one stereo pair.
+type Pair = (Vec<u8>, Vec<u8>);
+
+fn frames(particles: usize) -> (ScenarioSpec, Vec<Pair>) {
     let spec = ScenarioSpec::new(Scenario::Flume);
     let mut synth = Synthesizer::new(spec.clone(), particles, 7);
     let frames = (0..FRAMES).map(|_| {
@@ -32,35 +35,44 @@ fn benches(c: &mut Criterion) {
         let mut detector = Detector::new();
         let mut out = Vec::new();
         let mut n = 0;
-        group.bench_with_input(BenchmarkId::from_parameter(particles), &particles, |b, _| {
-            b.iter(|| {
-                n = (n + 1) % FRAMES;
-                detector.detect(view(w, h, &images[n].0), &spec.config.detect, &mut out);
-                out.len()
-            })
-        });
+        group.bench_with_input(
+            BenchmarkId::from_parameter(particles),
+            &particles,
+            |b, _| {
+                b.iter(|| {
+                    n = (n + 1) % FRAMES;
+                    detector.detect(view(w, h, &images[n].0), &spec.config.detect, &mut out);
+                    out.len()
+                })
+            },
+        );
         group.finish();
 
         let mut group = c.benchmark_group("pipeline_stereo_pair_640x480");
         group.throughput(Throughput::Elements(1));
-        group.bench_with_input(BenchmarkId::from_parameter(particles), &particles, |b, _| {
-            let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
-            let mut index = 0u64;
-            b.iter(|| {
-                // Replaying the same frames in a loop: one track break per loop, as in a real
-                // stream with occasional dropouts.
-                let (left, right) = &images[index as usize % FRAMES];
-                index += 1;
-                let frame = StereoFrame {
-                    index,
-                    t_s: index as f64 / 30.0,
-                    world_from_rig: None,
-                    left: view(w, h, left),
-                    right: view(w, h, right),
-                };
-                pipeline.push(&frame).expect("valid frame").vectors.len()
-            })
-        });
+        group.bench_with_input(
+            BenchmarkId::from_parameter(particles),
+            &particles,
+            |b, _| {
+                let mut pipeline =
+                    Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+                let mut index = 0u64;
+                b.iter(|| {
+                    // Replaying the same frames in a loop: one track break per loop, as in a real
+                    // stream with occasional dropouts.
+                    let (left, right) = &images[index as usize % FRAMES];
+                    index += 1;
+                    let frame = StereoFrame {
+                        index,
+                        t_s: index as f64 / 30.0,
+                        world_from_rig: None,
+                        left: view(w, h, left),
+                        right: view(w, h, right),
+                    };
+                    pipeline.push(&frame).expect("valid frame").vectors.len()
+                })
+            },
+        );
         group.finish();
     }
 }

@@ -8,11 +8,20 @@ use crate::ptv::{PipelineConfig, PipelineError};
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: {source}")]
-    Parse { path: PathBuf, source: toml::de::Error },
+    Parse {
+        path: PathBuf,
+        source: toml::de::Error,
+    },
     #[error("{path}: {source}")]
-    Invalid { path: PathBuf, source: PipelineError },
+    Invalid {
+        path: PathBuf,
+        source: PipelineError,
+    },
 }
 
 pub fn parse(path: &Path, text: &str) -> Result<PipelineConfig, ConfigError> {
@@ -50,18 +59,34 @@ mod tests {
         assert!(text.contains("[velocity]") && text.contains("half_window_frames = 5"));
         let back = parse(Path::new("c.toml"), &text).expect("valid");
         assert_eq!(back, PipelineConfig::method());
-        let partial = parse(Path::new("c.toml"), "[velocity]\nhalf_window_frames = 2\n").expect("valid");
+        let partial =
+            parse(Path::new("c.toml"), "[velocity]\nhalf_window_frames = 2\n").expect("valid");
         assert_eq!(partial.velocity.half_window_frames, 2);
         assert_eq!(partial.detect, PipelineConfig::default().detect);
     }
 
     #[test]
     fn typos_and_bad_values_are_named() {
-        let e = parse(Path::new("c.toml"), "[velocity]\nhalf_windw_frames = 2\n").unwrap_err().to_string();
-        assert!(e.contains("c.toml") && e.contains("half_windw_frames"), "{e}");
-        let e = parse(Path::new("c.toml"), "[link]\nbox_half_side_px = -3.0\n").unwrap_err().to_string();
-        assert!(e.contains("link.box_half_side_px: must be a finite number >= 0"), "{e}");
-        let e = parse(Path::new("c.toml"), "[velocity]\nhalf_window_frames = 0\n").unwrap_err().to_string();
-        assert!(e.contains("velocity.half_window_frames: must be >= 1"), "{e}");
+        let e = parse(Path::new("c.toml"), "[velocity]\nhalf_windw_frames = 2\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("c.toml") && e.contains("half_windw_frames"),
+            "{e}"
+        );
+        let e = parse(Path::new("c.toml"), "[link]\nbox_half_side_px = -3.0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("link.box_half_side_px: must be a finite number >= 0"),
+            "{e}"
+        );
+        let e = parse(Path::new("c.toml"), "[velocity]\nhalf_window_frames = 0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("velocity.half_window_frames: must be >= 1"),
+            "{e}"
+        );
     }
 }

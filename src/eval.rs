@@ -46,7 +46,11 @@ pub struct Xyz {
 
 impl From<Vector3<f64>> for Xyz {
     fn from(v: Vector3<f64>) -> Self {
-        Self { x: v.x, y: v.y, z: v.z }
+        Self {
+            x: v.x,
+            y: v.y,
+            z: v.z,
+        }
     }
 }
 
@@ -115,9 +119,21 @@ fn rms(sum_sq: Vector3<f64>, n: usize) -> Xyz {
     Xyz::from(sum_sq.map(|v| (v / n as f64).sqrt()))
 }
 
-pub fn evaluate(truth: &[TruthRow], tracks: &[TrackRow], options: &EvalOptions) -> Result<Report, EvalError> {
-    let first = tracks.iter().map(|t| t.frame).min().ok_or(EvalError::NoTracks)?;
-    let last = tracks.iter().map(|t| t.frame).max().ok_or(EvalError::NoTracks)?;
+pub fn evaluate(
+    truth: &[TruthRow],
+    tracks: &[TrackRow],
+    options: &EvalOptions,
+) -> Result<Report, EvalError> {
+    let first = tracks
+        .iter()
+        .map(|t| t.frame)
+        .min()
+        .ok_or(EvalError::NoTracks)?;
+    let last = tracks
+        .iter()
+        .map(|t| t.frame)
+        .max()
+        .ok_or(EvalError::NoTracks)?;
     let mut truth_by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
     for t in truth.iter().filter(|t| (first..=last).contains(&t.frame)) {
         truth_by_frame.entry(t.frame).or_default().push(*t);
@@ -143,7 +159,11 @@ pub fn evaluate(truth: &[TruthRow], tracks: &[TrackRow], options: &EvalOptions) 
             .get(&t.pid)
             .is_some_and(|&(first, last)| t.frame >= first + m && t.frame + m <= last)
     };
-    let measurable_rows = truth_by_frame.values().flatten().filter(|t| measurable(t)).count();
+    let measurable_rows = truth_by_frame
+        .values()
+        .flatten()
+        .filter(|t| measurable(t))
+        .count();
 
     let mut associations = Vec::new();
     let mut ghosts = 0;
@@ -186,7 +206,11 @@ pub fn evaluate(truth: &[TruthRow], tracks: &[TrackRow], options: &EvalOptions) 
     let mean_speed = if n == 0 {
         0.0
     } else {
-        associations.iter().map(|a| a.truth.velocity.norm()).sum::<f64>() / n as f64
+        associations
+            .iter()
+            .map(|a| a.truth.velocity.norm())
+            .sum::<f64>()
+            / n as f64
     };
     let mut position_sq = Vector3::zeros();
     let mut velocity_sq = Vector3::zeros();
@@ -198,21 +222,46 @@ pub fn evaluate(truth: &[TruthRow], tracks: &[TrackRow], options: &EvalOptions) 
         outliers += usize::from(dv.norm() > options.outlier_fraction * mean_speed);
     }
     let rms_velocity = rms(velocity_sq, n);
-    let relative = |v: f64| if mean_speed > 0.0 { v / mean_speed } else { f64::NAN };
+    let relative = |v: f64| {
+        if mean_speed > 0.0 {
+            v / mean_speed
+        } else {
+            f64::NAN
+        }
+    };
 
     let mut pid_counts: BTreeMap<u64, BTreeMap<u64, usize>> = BTreeMap::new();
     for a in &associations {
-        *pid_counts.entry(a.row.track_id).or_default().entry(a.truth.pid).or_default() += 1;
+        *pid_counts
+            .entry(a.row.track_id)
+            .or_default()
+            .entry(a.truth.pid)
+            .or_default() += 1;
     }
-    let dominant: usize = pid_counts.values().map(|c| c.values().copied().max().unwrap_or(0)).sum();
-    let present: std::collections::BTreeSet<u64> = truth_by_frame.values().flatten().map(|t| t.pid).collect();
-    let covered: std::collections::BTreeSet<u64> = associations.iter().map(|a| a.truth.pid).collect();
-    let tracks_count = tracks.iter().map(|t| t.track_id).collect::<std::collections::BTreeSet<_>>().len();
+    let dominant: usize = pid_counts
+        .values()
+        .map(|c| c.values().copied().max().unwrap_or(0))
+        .sum();
+    let present: std::collections::BTreeSet<u64> =
+        truth_by_frame.values().flatten().map(|t| t.pid).collect();
+    let covered: std::collections::BTreeSet<u64> =
+        associations.iter().map(|a| a.truth.pid).collect();
+    let tracks_count = tracks
+        .iter()
+        .map(|t| t.track_id)
+        .collect::<std::collections::BTreeSet<_>>()
+        .len();
 
     let mut by_depth = Vec::new();
     if n > 0 && options.depth_bins > 0 {
-        let z_min = associations.iter().map(|a| a.truth.position.z).fold(f64::MAX, f64::min);
-        let z_max = associations.iter().map(|a| a.truth.position.z).fold(f64::MIN, f64::max);
+        let z_min = associations
+            .iter()
+            .map(|a| a.truth.position.z)
+            .fold(f64::MAX, f64::min);
+        let z_max = associations
+            .iter()
+            .map(|a| a.truth.position.z)
+            .fold(f64::MIN, f64::max);
         let width = ((z_max - z_min) / options.depth_bins as f64).max(1e-12);
         let mut sums = vec![(Vector3::zeros(), 0usize); options.depth_bins];
         for a in &associations {
@@ -266,26 +315,71 @@ impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let pct = |v: f64| format!("{:.2} %", 100.0 * v);
         let xyz = |v: &Xyz, scale: f64, unit: &str| {
-            format!("x {:.4} {unit}  y {:.4} {unit}  z {:.4} {unit}", v.x * scale, v.y * scale, v.z * scale)
+            format!(
+                "x {:.4} {unit}  y {:.4} {unit}  z {:.4} {unit}",
+                v.x * scale,
+                v.y * scale,
+                v.z * scale
+            )
         };
-        writeln!(f, "frames {}..={}, {} vectors on {} tracks, {} truth particle-frames", self.first_frame, self.last_frame, self.track_rows, self.tracks, self.truth_rows)?;
-        writeln!(f, "association rate   {}  (within {} m of a truth particle, one-to-one)", pct(self.association_rate), self.radius_m)?;
+        writeln!(
+            f,
+            "frames {}..={}, {} vectors on {} tracks, {} truth particle-frames",
+            self.first_frame, self.last_frame, self.track_rows, self.tracks, self.truth_rows
+        )?;
+        writeln!(
+            f,
+            "association rate   {}  (within {} m of a truth particle, one-to-one)",
+            pct(self.association_rate),
+            self.radius_m
+        )?;
         writeln!(f, "ghost rate         {}", pct(self.ghost_rate))?;
         writeln!(f, "duplicate rate     {}", pct(self.duplicate_rate))?;
-        writeln!(f, "yield              {}  (truth particle-frames with a vector)", pct(self.yield_fraction))?;
+        writeln!(
+            f,
+            "yield              {}  (truth particle-frames with a vector)",
+            pct(self.yield_fraction)
+        )?;
         writeln!(f, "measurable yield   {}  (of the {} particle-frames whose particle lives +-{} frames around them)", pct(self.measurable_yield), self.measurable_rows, self.window_frames)?;
-        writeln!(f, "particle coverage  {}  (particles with at least one vector)", pct(self.particle_coverage))?;
+        writeln!(
+            f,
+            "particle coverage  {}  (particles with at least one vector)",
+            pct(self.particle_coverage)
+        )?;
         writeln!(f, "track purity       {}", pct(self.track_purity))?;
         writeln!(f, "mean speed         {:.4} m/s", self.mean_speed_m_per_s)?;
-        writeln!(f, "RMS position error {}", xyz(&self.rms_position_error_m, 1000.0, "mm"))?;
-        writeln!(f, "RMS velocity error {}", xyz(&self.rms_velocity_error_m_per_s, 1.0, "m/s"))?;
+        writeln!(
+            f,
+            "RMS position error {}",
+            xyz(&self.rms_position_error_m, 1000.0, "mm")
+        )?;
+        writeln!(
+            f,
+            "RMS velocity error {}",
+            xyz(&self.rms_velocity_error_m_per_s, 1.0, "m/s")
+        )?;
         let r = &self.relative_rms_velocity_error;
-        writeln!(f, "  relative to mean speed: u {}  v {}  w {}", pct(r.x), pct(r.y), pct(r.z))?;
-        writeln!(f, "outlier rate       {}  (error > {} x mean speed)", pct(self.outlier_rate), self.outlier_fraction_threshold)?;
+        writeln!(
+            f,
+            "  relative to mean speed: u {}  v {}  w {}",
+            pct(r.x),
+            pct(r.y),
+            pct(r.z)
+        )?;
+        writeln!(
+            f,
+            "outlier rate       {}  (error > {} x mean speed)",
+            pct(self.outlier_rate),
+            self.outlier_fraction_threshold
+        )?;
         writeln!(f, "RMS velocity error by depth (world z):")?;
         for b in &self.by_depth {
             let e = &b.rms_velocity_error;
-            writeln!(f, "  z {:.3}..{:.3} m  {:>6} rows  u {:.4}  v {:.4}  w {:.4} m/s", b.z_min, b.z_max, b.rows, e.x, e.y, e.z)?;
+            writeln!(
+                f,
+                "  z {:.3}..{:.3} m  {:>6} rows  u {:.4}  v {:.4}  w {:.4} m/s",
+                b.z_min, b.z_max, b.rows, e.x, e.y, e.z
+            )?;
         }
         Ok(())
     }
@@ -318,12 +412,18 @@ mod tests {
 
     #[test]
     fn counts_ghosts_duplicates_yield_and_errors() {
-        let truth = vec![truth(0, 1, 0.0), truth(0, 2, 1.0), truth(1, 1, 0.1), truth(1, 2, 1.1), truth(5, 1, 0.0)];
+        let truth = vec![
+            truth(0, 1, 0.0),
+            truth(0, 2, 1.0),
+            truth(1, 1, 0.1),
+            truth(1, 2, 1.1),
+            truth(5, 1, 0.0),
+        ];
         let tracks = vec![
-            row(0, 7, 0.001, 1.1),  // associated, error 0.1
-            row(0, 8, 0.003, 1.0),  // duplicate of pid 1
-            row(1, 7, 0.1, 0.9),    // associated, error -0.1
-            row(1, 9, 0.5, 1.0),    // ghost
+            row(0, 7, 0.001, 1.1), // associated, error 0.1
+            row(0, 8, 0.003, 1.0), // duplicate of pid 1
+            row(1, 7, 0.1, 0.9),   // associated, error -0.1
+            row(1, 9, 0.5, 1.0),   // ghost
         ];
         let r = evaluate(&truth, &tracks, &EvalOptions::default()).expect("scored");
         assert_eq!((r.first_frame, r.last_frame, r.truth_rows), (0, 1, 4));
@@ -336,7 +436,15 @@ mod tests {
         assert!((r.track_purity - 1.0).abs() < 1e-12);
         assert!((r.particle_coverage - 0.5).abs() < 1e-12);
         assert_eq!(r.measurable_rows, 4);
-        let windowed = evaluate(&truth, &tracks, &EvalOptions { window_frames: 1, ..Default::default() }).expect("scored");
+        let windowed = evaluate(
+            &truth,
+            &tracks,
+            &EvalOptions {
+                window_frames: 1,
+                ..Default::default()
+            },
+        )
+        .expect("scored");
         // pid 1 lives in frames 0, 1 and 5 (lifetime 0..=5): frame 1 is measurable, frame 0 not;
         // pid 2 lives in frames 0..=1 only: never measurable with M = 1.
         assert_eq!(windowed.measurable_rows, 1);
@@ -345,7 +453,10 @@ mod tests {
 
     #[test]
     fn empty_inputs_are_errors_not_zeros() {
-        assert_eq!(evaluate(&[], &[], &EvalOptions::default()), Err(EvalError::NoTracks));
+        assert_eq!(
+            evaluate(&[], &[], &EvalOptions::default()),
+            Err(EvalError::NoTracks)
+        );
         assert_eq!(
             evaluate(&[], &[row(3, 1, 0.0, 0.0)], &EvalOptions::default()),
             Err(EvalError::NoTruth { first: 3, last: 3 })

@@ -79,7 +79,9 @@ impl Distortion {
             n => {
                 return Err(invalid(
                     field,
-                    format!("expected 0, 4, 5 or 8 coefficients [k1,k2,p1,p2,k3,k4,k5,k6], got {n}"),
+                    format!(
+                        "expected 0, 4, 5 or 8 coefficients [k1,k2,p1,p2,k3,k4,k5,k6], got {n}"
+                    ),
                 ))
             }
         }
@@ -247,7 +249,10 @@ fn camera_from_file(
 }
 
 /// Builds a rotation from a matrix that must already be orthonormal with determinant +1.
-pub fn rotation_from_matrix(field: &str, m: &Matrix3<f64>) -> Result<Rotation3<f64>, CalibrationError> {
+pub fn rotation_from_matrix(
+    field: &str,
+    m: &Matrix3<f64>,
+) -> Result<Rotation3<f64>, CalibrationError> {
     if m.iter().any(|v| !v.is_finite()) {
         return Err(CalibrationError::NotFinite {
             field: field.to_string(),
@@ -261,7 +266,10 @@ pub fn rotation_from_matrix(field: &str, m: &Matrix3<f64>) -> Result<Rotation3<f
         ));
     }
     if m.determinant() < 0.0 {
-        return Err(invalid(field, "is a reflection (determinant -1), not a rotation"));
+        return Err(invalid(
+            field,
+            "is a reflection (determinant -1), not a rotation",
+        ));
     }
     Ok(Rotation3::from_matrix(m))
 }
@@ -318,7 +326,10 @@ impl StereoRig {
     }
 
     pub fn contains(&self, p: PixelPoint) -> bool {
-        p.x >= -0.5 && p.y >= -0.5 && p.x < self.width as f64 - 0.5 && p.y < self.height as f64 - 0.5
+        p.x >= -0.5
+            && p.y >= -0.5
+            && p.x < self.width as f64 - 0.5
+            && p.y < self.height as f64 - 0.5
     }
 }
 
@@ -395,7 +406,12 @@ impl Rectification {
         Ok(rect)
     }
 
-    fn to_rect(&self, camera: &CameraModel, rect_from_cam: &Rotation3<f64>, p: PixelPoint) -> Option<RectPoint> {
+    fn to_rect(
+        &self,
+        camera: &CameraModel,
+        rect_from_cam: &Rotation3<f64>,
+        p: PixelPoint,
+    ) -> Option<RectPoint> {
         let (x, y) = camera.unproject(p)?;
         let ray = rect_from_cam * Vector3::new(x, y, 1.0);
         (ray.z > 1e-9).then(|| RectPoint {
@@ -446,7 +462,10 @@ pub struct Triangulated {
 }
 
 /// Parses a row-major 4x4 rigid transform (`world_from_rig`), checking that it is rigid.
-pub fn isometry_from_row_major(field: &str, m: &[f64; 16]) -> Result<Isometry3<f64>, CalibrationError> {
+pub fn isometry_from_row_major(
+    field: &str,
+    m: &[f64; 16],
+) -> Result<Isometry3<f64>, CalibrationError> {
     check_finite(field, m)?;
     let bottom = [m[12], m[13], m[14], m[15]];
     if bottom != [0.0, 0.0, 0.0, 1.0] {
@@ -519,7 +538,9 @@ mod tests {
     fn parallel_rig_rectification_is_identity() {
         let rect = Rectification::new(&parallel_rig()).expect("valid");
         assert!((rect.baseline_m - 0.1).abs() < 1e-12);
-        let r = rect.left_to_rect(PixelPoint { x: 419.5, y: 139.5 }).expect("in view");
+        let r = rect
+            .left_to_rect(PixelPoint { x: 419.5, y: 139.5 })
+            .expect("in view");
         assert!((r.x - 100.0).abs() < 1e-9 && (r.y + 100.0).abs() < 1e-9);
         assert!((rect.half_width_px - 319.5).abs() < 1e-9);
     }
@@ -538,7 +559,12 @@ mod tests {
     fn rig_file_round_trips() {
         let rig = hololens_like_rig();
         let back = StereoRig::from_file(&rig.to_file()).expect("valid");
-        assert!((back.right_from_left.to_homogeneous() - rig.right_from_left.to_homogeneous()).abs().max() < 1e-12);
+        assert!(
+            (back.right_from_left.to_homogeneous() - rig.right_from_left.to_homogeneous())
+                .abs()
+                .max()
+                < 1e-12
+        );
         assert_eq!(back.left, rig.left);
     }
 
@@ -552,13 +578,22 @@ mod tests {
         );
         let mut file = parallel_rig().to_file();
         file.R[0][0] = 2.0;
-        assert!(StereoRig::from_file(&file).unwrap_err().to_string().starts_with("R: is not a rotation"));
+        assert!(StereoRig::from_file(&file)
+            .unwrap_err()
+            .to_string()
+            .starts_with("R: is not a rotation"));
         let mut file = parallel_rig().to_file();
         file.T = [0.0; 3];
-        assert!(StereoRig::from_file(&file).unwrap_err().to_string().contains("baseline is zero"));
+        assert!(StereoRig::from_file(&file)
+            .unwrap_err()
+            .to_string()
+            .contains("baseline is zero"));
         let mut file = parallel_rig().to_file();
         file.D1 = vec![0.1, 0.2, 0.3];
-        assert!(StereoRig::from_file(&file).unwrap_err().to_string().starts_with("D1: expected 0, 4, 5 or 8"));
+        assert!(StereoRig::from_file(&file)
+            .unwrap_err()
+            .to_string()
+            .starts_with("D1: expected 0, 4, 5 or 8"));
     }
 
     proptest! {

@@ -17,7 +17,11 @@ use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tables;
 
 #[derive(Parser)]
-#[command(name = "mrptv", version, about = "Mixed-reality particle tracking velocimetry: stereo frames in, 3D velocity vectors out")]
+#[command(
+    name = "mrptv",
+    version,
+    about = "Mixed-reality particle tracking velocimetry: stereo frames in, 3D velocity vectors out"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -108,18 +112,20 @@ enum Command {
 
 fn progress_bar(len: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len as u64);
-    let style = ProgressStyle::with_template("{msg:>10} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}")
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> ");
+    let style = ProgressStyle::with_template(
+        "{msg:>10} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}",
+    )
+    .unwrap_or_else(|_| ProgressStyle::default_bar())
+    .progress_chars("=> ");
     bar.set_style(style);
     bar.set_message(what.to_string());
     bar
 }
 
 fn create_output(path: &Path) -> Result<BufWriter<fs::File>> {
-    Ok(BufWriter::new(
-        fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?,
-    ))
+    Ok(BufWriter::new(fs::File::create(path).with_context(
+        || format!("cannot create {}", path.display()),
+    )?))
 }
 
 fn main() -> std::process::ExitCode {
@@ -141,8 +147,15 @@ fn run(cli: Cli) -> Result<()> {
             particles,
             seed,
         } => {
-            if out.exists() && fs::read_dir(&out).map(|mut d| d.next().is_some()).unwrap_or(true) {
-                bail!("{} exists and is not empty; choose a new directory", out.display());
+            if out.exists()
+                && fs::read_dir(&out)
+                    .map(|mut d| d.next().is_some())
+                    .unwrap_or(true)
+            {
+                bail!(
+                    "{} exists and is not empty; choose a new directory",
+                    out.display()
+                );
             }
             let spec = ScenarioSpec::new(scenario);
             let frames = frames.unwrap_or(spec.default_frames);
@@ -151,7 +164,9 @@ fn run(cli: Cli) -> Result<()> {
                 bail!("--frames must be at least 1");
             }
             let bar = progress_bar(frames, "synth");
-            let summary = offline::write_synthetic(spec, &out, frames, particles, seed, |n| bar.set_position(n as u64))?;
+            let summary = offline::write_synthetic(spec, &out, frames, particles, seed, |n| {
+                bar.set_position(n as u64)
+            })?;
             bar.finish_and_clear();
             println!(
                 "wrote {} frames of '{scenario}' ({particles} particles, seed {seed}) to {}; {:.1} % of particle-frames visible in both cameras",
@@ -237,15 +252,24 @@ fn run(cli: Cli) -> Result<()> {
             let spec = ScenarioSpec::new(scenario);
             let frames = frames.unwrap_or(spec.default_frames);
             let particles = particles.unwrap_or(spec.default_particles);
-            let config = if method { method_config(&spec.config) } else { spec.config.clone() };
+            let config = if method {
+                method_config(&spec.config)
+            } else {
+                spec.config.clone()
+            };
             println!("scenario '{scenario}': {}", scenario.description());
-            println!("{frames} frames, {particles} particles, seed {seed}, {} config", if method { "published-method" } else { "mrptv" });
+            println!(
+                "{frames} frames, {particles} particles, seed {seed}, {} config",
+                if method { "published-method" } else { "mrptv" }
+            );
             let bar = progress_bar(frames, "demo");
             let eval = EvalOptions {
                 window_frames: config.velocity.half_window_frames as u64,
                 ..Default::default()
             };
-            let run = offline::run_in_memory(spec, config, frames, particles, seed, &eval, |n| bar.set_position(n as u64))?;
+            let run = offline::run_in_memory(spec, config, frames, particles, seed, &eval, |n| {
+                bar.set_position(n as u64)
+            })?;
             bar.finish_and_clear();
             println!(
                 "engine: {:.0} stereo frames/s on one thread, {:.1} matches/frame, {} vectors\n",
@@ -256,7 +280,11 @@ fn run(cli: Cli) -> Result<()> {
             print!("{}", run.report);
         }
         Command::Config { method } => {
-            let config = if method { PipelineConfig::method() } else { PipelineConfig::default() };
+            let config = if method {
+                PipelineConfig::method()
+            } else {
+                PipelineConfig::default()
+            };
             print!("{}", mrptv::config::to_toml(&config));
         }
     }
@@ -282,5 +310,9 @@ fn load_config(rec: &Path, explicit: Option<&Path>, method: bool) -> Result<Pipe
         }
         None => PipelineConfig::default(),
     };
-    Ok(if method { method_config(&config) } else { config })
+    Ok(if method {
+        method_config(&config)
+    } else {
+        config
+    })
 }

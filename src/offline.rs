@@ -22,7 +22,10 @@ pub enum OfflineError {
     #[error(transparent)]
     Eval(#[from] EvalError),
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> OfflineError + '_ {
@@ -154,7 +157,9 @@ pub fn process_recording(
         });
         for loaded in rx {
             let (entry, (left, right)) = loaded?;
-            let (Some(left), Some(right)) = (ImageView::new(w, h, &left), ImageView::new(w, h, &right)) else {
+            let (Some(left), Some(right)) =
+                (ImageView::new(w, h, &left), ImageView::new(w, h, &right))
+            else {
                 unreachable!("decode_gray_png checked the size");
             };
             let frame = StereoFrame {
@@ -172,7 +177,8 @@ pub fn process_recording(
             }
             if let Some(p) = points.as_mut() {
                 for m in &output.points {
-                    tables::write_point_row(p, output.frame_index, output.t_s, m).map_err(out_error)?;
+                    tables::write_point_row(p, output.frame_index, output.t_s, m)
+                        .map_err(out_error)?;
                 }
             }
             progress(totals.frames);
@@ -213,7 +219,10 @@ pub fn run_in_memory(
     let mut totals = RunTotals::default();
     for n in 0..frames {
         let f = synth.next_frame();
-        let (Some(left), Some(right)) = (ImageView::new(w, h, &f.left), ImageView::new(w, h, &f.right)) else {
+        let (Some(left), Some(right)) = (
+            ImageView::new(w, h, &f.left),
+            ImageView::new(w, h, &f.right),
+        ) else {
             unreachable!("the synthesizer renders rig-sized images");
         };
         let frame = StereoFrame {

@@ -21,11 +21,20 @@ use crate::tables::{self, TableError};
 #[derive(Debug, thiserror::Error)]
 pub enum RecordingError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: {source}")]
-    Json { path: PathBuf, source: serde_json::Error },
+    Json {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
     #[error("{path}: {source}")]
-    Calibration { path: PathBuf, source: CalibrationError },
+    Calibration {
+        path: PathBuf,
+        source: CalibrationError,
+    },
     #[error(transparent)]
     Table(#[from] TableError),
     #[error("{path}: {message}")]
@@ -64,10 +73,11 @@ pub fn read_rig(path: &Path) -> Result<StereoRig, RecordingError> {
 }
 
 pub fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
-    let json = serde_json::to_string_pretty(&rig.to_file()).map_err(|source| RecordingError::Json {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let json =
+        serde_json::to_string_pretty(&rig.to_file()).map_err(|source| RecordingError::Json {
+            path: path.to_path_buf(),
+            source,
+        })?;
     fs::write(path, json + "\n").map_err(io_error(path))
 }
 
@@ -87,16 +97,25 @@ pub fn read_frames(path: &Path) -> Result<Vec<FrameEntry>, RecordingError> {
         let t_s = row.values[1];
         if let Some(prev) = frames.last() {
             if index <= prev.index {
-                return Err(row_error(row.line, format!("index {index} does not increase (previous {})", prev.index)));
+                return Err(row_error(
+                    row.line,
+                    format!("index {index} does not increase (previous {})", prev.index),
+                ));
             }
             if t_s <= prev.t_s {
-                return Err(row_error(row.line, format!("t_s {t_s} does not increase (previous {})", prev.t_s)));
+                return Err(row_error(
+                    row.line,
+                    format!("t_s {t_s} does not increase (previous {})", prev.t_s),
+                ));
             }
         }
         let world_from_rig = if variant == 1 {
             let mut m = [0.0; 16];
             m.copy_from_slice(&row.values[2..18]);
-            Some(isometry_from_row_major("world_from_rig", &m).map_err(|e| row_error(row.line, e.to_string()))?)
+            Some(
+                isometry_from_row_major("world_from_rig", &m)
+                    .map_err(|e| row_error(row.line, e.to_string()))?,
+            )
         } else {
             None
         };
@@ -120,9 +139,13 @@ pub fn read_gray_png(path: &Path, width: u32, height: u32) -> Result<Vec<u8>, Re
 
 /// Decodes an 8-bit grayscale PNG of a known size from memory.
 pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
-    let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png).map_err(|e| format!("not a readable PNG: {e}"))?;
+    let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+        .map_err(|e| format!("not a readable PNG: {e}"))?;
     let image::DynamicImage::ImageLuma8(gray) = image else {
-        return Err(format!("expected 8-bit grayscale, found {:?}", image.color()));
+        return Err(format!(
+            "expected 8-bit grayscale, found {:?}",
+            image.color()
+        ));
     };
     if gray.width() != width || gray.height() != height {
         return Err(format!(
@@ -155,7 +178,10 @@ impl Recording {
         if !dir.is_dir() {
             return Err(RecordingError::Io {
                 path: dir.to_path_buf(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "not a recording directory"),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "not a recording directory",
+                ),
             });
         }
         Ok(Self {
@@ -230,9 +256,11 @@ impl RecordingWriter {
     ) -> Result<(), RecordingError> {
         for (sub, pixels) in [("left", left), ("right", right)] {
             let path = self.dir.join(sub).join(image_name(entry.index));
-            let png = encode_gray_png(pixels, self.width, self.height).map_err(|message| RecordingError::Image {
-                path: path.clone(),
-                message,
+            let png = encode_gray_png(pixels, self.width, self.height).map_err(|message| {
+                RecordingError::Image {
+                    path: path.clone(),
+                    message,
+                }
             })?;
             let tmp = path.with_extension("png.tmp");
             fs::write(&tmp, png).map_err(io_error(&tmp))?;
@@ -270,7 +298,9 @@ mod tests {
                 t_s: f.t_s,
                 world_from_rig: f.world_from_rig,
             };
-            writer.write_frame(&entry, &f.left, &f.right).expect("write");
+            writer
+                .write_frame(&entry, &f.left, &f.right)
+                .expect("write");
             written.push((entry, f.left));
         }
         drop(writer);
@@ -279,7 +309,10 @@ mod tests {
         for ((entry, left), read) in written.iter().zip(&rec.frames) {
             assert_eq!(entry.index, read.index);
             assert_eq!(entry.t_s, read.t_s);
-            let (a, b) = (entry.world_from_rig.expect("pose"), read.world_from_rig.expect("pose"));
+            let (a, b) = (
+                entry.world_from_rig.expect("pose"),
+                read.world_from_rig.expect("pose"),
+            );
             assert!((a.to_homogeneous() - b.to_homogeneous()).abs().max() < 1e-12);
             assert_eq!(&rec.load(read).expect("images").0, left);
         }
@@ -291,11 +324,21 @@ mod tests {
         let p = dir.path().join("frames.csv");
         fs::write(&p, "index,t_s\n0,0.5\n1,0.4\n").expect("write");
         let e = read_frames(&p).unwrap_err().to_string();
-        assert!(e.ends_with("frames.csv line 3: t_s 0.4 does not increase (previous 0.5)"), "{e}");
+        assert!(
+            e.ends_with("frames.csv line 3: t_s 0.4 does not increase (previous 0.5)"),
+            "{e}"
+        );
         let header = tables::frames_header_with_pose();
-        fs::write(&p, format!("{header}\n0,0,2,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n")).expect("write");
+        fs::write(
+            &p,
+            format!("{header}\n0,0,2,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1\n"),
+        )
+        .expect("write");
         let e = read_frames(&p).unwrap_err().to_string();
-        assert!(e.contains("line 2: world_from_rig: is not a rotation"), "{e}");
+        assert!(
+            e.contains("line 2: world_from_rig: is not a rotation"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -309,7 +352,9 @@ mod tests {
 
     #[test]
     fn non_png_and_colour_png_are_rejected() {
-        assert!(decode_gray_png(b"not a png", 4, 4).unwrap_err().starts_with("not a readable PNG"));
+        assert!(decode_gray_png(b"not a png", 4, 4)
+            .unwrap_err()
+            .starts_with("not a readable PNG"));
         let mut rgb = Vec::new();
         image::ImageEncoder::write_image(
             image::codecs::png::PngEncoder::new(&mut rgb),
@@ -319,8 +364,12 @@ mod tests {
             image::ExtendedColorType::Rgb8,
         )
         .expect("encode");
-        assert!(decode_gray_png(&rgb, 4, 4).unwrap_err().starts_with("expected 8-bit grayscale"));
+        assert!(decode_gray_png(&rgb, 4, 4)
+            .unwrap_err()
+            .starts_with("expected 8-bit grayscale"));
         let gray = encode_gray_png(&[0u8; 16], 4, 4).expect("encode");
-        assert!(decode_gray_png(&gray, 5, 4).unwrap_err().contains("image is 4x4, rig.json image_size is 5x4"));
+        assert!(decode_gray_png(&gray, 5, 4)
+            .unwrap_err()
+            .contains("image is 4x4, rig.json image_size is 5x4"));
     }
 }

@@ -13,7 +13,9 @@ use std::f64::consts::PI;
 use std::fmt;
 use std::str::FromStr;
 
-use nalgebra::{Isometry3, Matrix2, Point3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{
+    Isometry3, Matrix2, Point3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3,
+};
 
 use crate::geometry::{CameraModel, Distortion, StereoRig};
 use crate::ptv::PipelineConfig;
@@ -142,7 +144,10 @@ pub struct Mode {
 pub enum Flow {
     Uniform(Vector3<f64>),
     /// Kinematic-simulation turbulence: a sum of divergence-free modes with a k^-5/3 spectrum.
-    Turbulence { mean: Vector3<f64>, modes: Vec<Mode> },
+    Turbulence {
+        mean: Vector3<f64>,
+        modes: Vec<Mode>,
+    },
 }
 
 impl Flow {
@@ -182,7 +187,10 @@ impl Flow {
             })
             .collect();
         // Mean square speed of the sum is half the sum of |a|^2 + |b|^2.
-        let mean_square: f64 = modes.iter().map(|m| (m.a.norm_squared() + m.b.norm_squared()) / 2.0).sum();
+        let mean_square: f64 = modes
+            .iter()
+            .map(|m| (m.a.norm_squared() + m.b.norm_squared()) / 2.0)
+            .sum();
         let gain = rms_speed / mean_square.sqrt();
         for m in &mut modes {
             m.a *= gain;
@@ -227,7 +235,11 @@ impl HeadMotion {
                 let wave = |amp: f64, hz: f64| amp * (2.0 * PI * hz * t_s).sin();
                 Some(Isometry3::from_parts(
                     Translation3::new(wave(ta.x, tf.x), wave(ta.y, tf.y), wave(ta.z, tf.z)),
-                    UnitQuaternion::from_euler_angles(wave(ra.x, rf.x), wave(ra.y, rf.y), wave(ra.z, rf.z)),
+                    UnitQuaternion::from_euler_angles(
+                        wave(ra.x, rf.x),
+                        wave(ra.y, rf.y),
+                        wave(ra.z, rf.z),
+                    ),
                 ))
             }
         }
@@ -264,7 +276,11 @@ pub struct ScenarioSpec {
 }
 
 fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
-    let camera = CameraModel::pinhole(f_px, (width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+    let camera = CameraModel::pinhole(
+        f_px,
+        (width as f64 - 1.0) / 2.0,
+        (height as f64 - 1.0) / 2.0,
+    );
     StereoRig {
         width,
         height,
@@ -387,6 +403,8 @@ impl ScenarioSpec {
                 let mut config = PipelineConfig::default();
                 config.velocity.half_window_frames = 2;
                 config.velocity.max_missing_per_side = 0;
+                // Coasting tracks steal detections when particles move ~30 px per frame.
+                config.link.max_gap_frames = 0;
                 config.link.box_half_side_px = 40.0;
                 ScenarioSpec {
                     default_frames: 120,
@@ -482,7 +500,9 @@ impl Synthesizer {
         };
         for _ in 0..particles {
             let position = Point3::from(Vector3::from_fn(|i, _| {
-                synth.rng.range(synth.spec.domain_min[i], synth.spec.domain_max[i])
+                synth
+                    .rng
+                    .range(synth.spec.domain_min[i], synth.spec.domain_max[i])
             }));
             let p = synth.new_particle(position);
             synth.particles.push(p);
@@ -497,7 +517,8 @@ impl Synthesizer {
     fn new_particle(&mut self, position: Point3<f64>) -> Particle {
         self.next_pid += 1;
         let spec = &self.spec;
-        let diameter_m = (spec.diameter_m + spec.diameter_sd_m * self.rng.normal()).max(spec.diameter_m * 0.3);
+        let diameter_m =
+            (spec.diameter_m + spec.diameter_sd_m * self.rng.normal()).max(spec.diameter_m * 0.3);
         let brightness_factor = (1.0 + spec.brightness_spread * self.rng.normal()).max(0.2);
         Particle {
             pid: self.next_pid,
@@ -578,7 +599,13 @@ impl Synthesizer {
 }
 
 /// Adds one particle's disc to a camera's float image; returns whether its centre is in view.
-fn render_particle(spec: &ScenarioSpec, camera: &CameraModel, in_camera: &Point3<f64>, p: &Particle, image: &mut [f32]) -> bool {
+fn render_particle(
+    spec: &ScenarioSpec,
+    camera: &CameraModel,
+    in_camera: &Point3<f64>,
+    p: &Particle,
+    image: &mut [f32],
+) -> bool {
     let Some(centre) = camera.project(in_camera) else {
         return false;
     };
@@ -592,8 +619,12 @@ fn render_particle(spec: &ScenarioSpec, camera: &CameraModel, in_camera: &Point3
             .project(&Point3::new(n.x, n.y, 1.0))
             .map_or(Vector2::zeros(), |q| Vector2::new(q.x, q.y))
     };
-    let column = |d: Vector2<f64>| (project(normalized + d) - project(normalized - d)) / (2.0 * eps);
-    let jacobian = Matrix2::from_columns(&[column(Vector2::new(eps, 0.0)), column(Vector2::new(0.0, eps))]);
+    let column =
+        |d: Vector2<f64>| (project(normalized + d) - project(normalized - d)) / (2.0 * eps);
+    let jacobian = Matrix2::from_columns(&[
+        column(Vector2::new(eps, 0.0)),
+        column(Vector2::new(0.0, eps)),
+    ]);
     let Some(inverse) = jacobian.try_inverse() else {
         return false;
     };
@@ -601,8 +632,10 @@ fn render_particle(spec: &ScenarioSpec, camera: &CameraModel, in_camera: &Point3
     let brightness = p.brightness_factor * spec.illumination / (4.0 * PI * range_m * range_m);
     let pixel_reach = jacobian.norm() * radius + 2.0;
     let half_pixel = inverse.norm() * 0.5;
-    let x_range = ((centre.x - pixel_reach).floor().max(0.0) as usize)..=((centre.x + pixel_reach).ceil().min(w as f64 - 1.0).max(0.0) as usize);
-    let y_range = ((centre.y - pixel_reach).floor().max(0.0) as usize)..=((centre.y + pixel_reach).ceil().min(h as f64 - 1.0).max(0.0) as usize);
+    let x_range = ((centre.x - pixel_reach).floor().max(0.0) as usize)
+        ..=((centre.x + pixel_reach).ceil().min(w as f64 - 1.0).max(0.0) as usize);
+    let y_range = ((centre.y - pixel_reach).floor().max(0.0) as usize)
+        ..=((centre.y + pixel_reach).ceil().min(h as f64 - 1.0).max(0.0) as usize);
     for py in y_range {
         for px in x_range.clone() {
             let offset = inverse * Vector2::new(px as f64 - centre.x, py as f64 - centre.y);
@@ -641,8 +674,13 @@ fn finish_image(spec: &ScenarioSpec, signal: &[f32], noise: &mut Rng) -> Vec<u8>
         .iter()
         .enumerate()
         .map(|(i, &s)| {
-            let background = spec.background + spec.background_gradient * ((i % w) as f64 / w as f64);
-            let n = if spec.noise_sd > 0.0 { spec.noise_sd * noise.normal() } else { 0.0 };
+            let background =
+                spec.background + spec.background_gradient * ((i % w) as f64 / w as f64);
+            let n = if spec.noise_sd > 0.0 {
+                spec.noise_sd * noise.normal()
+            } else {
+                0.0
+            };
             (background + s as f64 + n).round().clamp(0.0, 255.0) as u8
         })
         .collect()
@@ -682,7 +720,8 @@ mod tests {
                 .map(|a| {
                     let mut d = Vector3::zeros();
                     d[a] = e;
-                    (spec.flow.velocity(&(x + d), 0.3)[a] - spec.flow.velocity(&(x - d), 0.3)[a]) / (2.0 * e)
+                    (spec.flow.velocity(&(x + d), 0.3)[a] - spec.flow.velocity(&(x - d), 0.3)[a])
+                        / (2.0 * e)
                 })
                 .sum();
             assert!(div.abs() < 1e-5, "divergence {div}");
@@ -700,7 +739,10 @@ mod tests {
                 seen += f.visible_in_both;
                 all += f.truth.len();
             }
-            assert!(seen as f64 >= 0.97 * all as f64, "{scenario}: {seen} of {all} visible");
+            assert!(
+                seen as f64 >= 0.97 * all as f64,
+                "{scenario}: {seen} of {all} visible"
+            );
         }
     }
 }

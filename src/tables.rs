@@ -31,13 +31,24 @@ pub fn frames_header_with_pose() -> String {
 #[derive(Debug, thiserror::Error)]
 pub enum TableError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: empty file, expected the header '{expected}'")]
     Empty { path: PathBuf, expected: String },
     #[error("{path} line 1: header '{found}' is not {expected}")]
-    Header { path: PathBuf, found: String, expected: String },
+    Header {
+        path: PathBuf,
+        found: String,
+        expected: String,
+    },
     #[error("{path} line {line}: {message}")]
-    Row { path: PathBuf, line: usize, message: String },
+    Row {
+        path: PathBuf,
+        line: usize,
+        message: String,
+    },
 }
 
 /// A data row with the line it came from (1-based, header is line 1).
@@ -49,7 +60,10 @@ pub struct Row {
 
 /// Reads a numeric CSV whose header must equal one of `headers`; returns which one and the rows.
 pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
-    let io = |source| TableError::Io { path: path.to_path_buf(), source };
+    let io = |source| TableError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let file = std::fs::File::open(path).map_err(io)?;
     let mut lines = BufReader::new(file).lines();
     let expected = || {
@@ -106,7 +120,10 @@ pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), 
                 }
             }
         }
-        rows.push(Row { line: line_no, values });
+        rows.push(Row {
+            line: line_no,
+            values,
+        });
     }
     Ok((variant, rows))
 }
@@ -177,15 +194,28 @@ pub fn read_tracks(path: &Path) -> Result<Vec<TrackRow>, TableError> {
 
 pub fn write_truth_row(out: &mut (impl Write + ?Sized), r: &TruthRow) -> std::io::Result<()> {
     let (p, v) = (r.position, r.velocity);
-    writeln!(out, "{},{},{},{},{},{},{},{},{}", r.frame, r.t_s, r.pid, p.x, p.y, p.z, v.x, v.y, v.z)
+    writeln!(
+        out,
+        "{},{},{},{},{},{},{},{},{}",
+        r.frame, r.t_s, r.pid, p.x, p.y, p.z, v.x, v.y, v.z
+    )
 }
 
 pub fn write_track_row(out: &mut (impl Write + ?Sized), v: &VelocityVector) -> std::io::Result<()> {
     let (p, u) = (v.position_in_world, v.velocity_in_world);
-    writeln!(out, "{},{},{},{},{},{},{},{},{}", v.frame_index, v.t_s, v.track_id, p.x, p.y, p.z, u.x, u.y, u.z)
+    writeln!(
+        out,
+        "{},{},{},{},{},{},{},{},{}",
+        v.frame_index, v.t_s, v.track_id, p.x, p.y, p.z, u.x, u.y, u.z
+    )
 }
 
-pub fn write_point_row(out: &mut (impl Write + ?Sized), frame: u64, t_s: f64, m: &MatchedPoint) -> std::io::Result<()> {
+pub fn write_point_row(
+    out: &mut (impl Write + ?Sized),
+    frame: u64,
+    t_s: f64,
+    m: &MatchedPoint,
+) -> std::io::Result<()> {
     let p = m.point_in_world;
     writeln!(
         out,
@@ -194,7 +224,11 @@ pub fn write_point_row(out: &mut (impl Write + ?Sized), frame: u64, t_s: f64, m:
     )
 }
 
-pub fn format_frame_row(index: u64, t_s: f64, world_from_rig: Option<&nalgebra::Isometry3<f64>>) -> String {
+pub fn format_frame_row(
+    index: u64,
+    t_s: f64,
+    world_from_rig: Option<&nalgebra::Isometry3<f64>>,
+) -> String {
     let mut line = format!("{index},{t_s}");
     if let Some(pose) = world_from_rig {
         for v in isometry_to_row_major(pose) {
@@ -218,31 +252,50 @@ mod tests {
     #[test]
     fn names_line_and_column_of_a_bad_value() {
         let dir = tempfile::tempdir().expect("tmp");
-        let p = write(&dir, "t.csv", "frame,t_s,track_id,x,y,z,u,v,w\n0,0,1,0,0,0,0,0,0\n1,0.1,1,0,abc,0,0,0,0\n");
+        let p = write(
+            &dir,
+            "t.csv",
+            "frame,t_s,track_id,x,y,z,u,v,w\n0,0,1,0,0,0,0,0,0\n1,0.1,1,0,abc,0,0,0,0\n",
+        );
         let e = read_tracks(&p).unwrap_err().to_string();
-        assert!(e.ends_with("t.csv line 3: y 'abc' is not a finite number"), "{e}");
+        assert!(
+            e.ends_with("t.csv line 3: y 'abc' is not a finite number"),
+            "{e}"
+        );
     }
 
     #[test]
     fn wrong_header_and_field_count() {
         let dir = tempfile::tempdir().expect("tmp");
         let p = write(&dir, "a.csv", "frame,t,pid\n");
-        assert!(read_truth(&p).unwrap_err().to_string().contains("header 'frame,t,pid' is not 'frame,t_s,pid,x,y,z,u,v,w'"));
+        assert!(read_truth(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("header 'frame,t,pid' is not 'frame,t_s,pid,x,y,z,u,v,w'"));
         let p = write(&dir, "b.csv", "index,t_s\n0,0.0,7\n");
         let e = read_numeric(&p, &[FRAMES_HEADER]).unwrap_err().to_string();
         assert!(e.ends_with("line 2: 3 fields, the header has 2"), "{e}");
         let p = write(&dir, "c.csv", "");
-        assert!(read_numeric(&p, &[FRAMES_HEADER]).unwrap_err().to_string().contains("empty file"));
+        assert!(read_numeric(&p, &[FRAMES_HEADER])
+            .unwrap_err()
+            .to_string()
+            .contains("empty file"));
         let p = write(&dir, "d.csv", "index,t_s\n1.5,0\n");
         let (_, rows) = read_numeric(&p, &[FRAMES_HEADER]).expect("numeric");
-        assert!(whole(&p, &rows[0], 0, "index").unwrap_err().to_string().contains("index 1.5 is not a non-negative whole number"));
+        assert!(whole(&p, &rows[0], 0, "index")
+            .unwrap_err()
+            .to_string()
+            .contains("index 1.5 is not a non-negative whole number"));
     }
 
     #[test]
     fn nan_is_rejected() {
         let dir = tempfile::tempdir().expect("tmp");
         let p = write(&dir, "n.csv", "index,t_s\n0,NaN\n");
-        assert!(read_numeric(&p, &[FRAMES_HEADER]).unwrap_err().to_string().contains("t_s 'NaN' is not a finite number"));
+        assert!(read_numeric(&p, &[FRAMES_HEADER])
+            .unwrap_err()
+            .to_string()
+            .contains("t_s 'NaN' is not a finite number"));
     }
 
     #[test]

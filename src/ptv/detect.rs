@@ -112,7 +112,12 @@ impl Detector {
     }
 
     /// Detects particles; appends to `out` (cleared first) in raster order of their first pixel.
-    pub fn detect(&mut self, image: ImageView<'_>, config: &DetectConfig, out: &mut Vec<Detection>) {
+    pub fn detect(
+        &mut self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        out: &mut Vec<Detection>,
+    ) {
         out.clear();
         let (w, h) = (image.width, image.height);
         if w == 0 || h == 0 {
@@ -140,7 +145,13 @@ impl Detector {
             // Shifted slices instead of indexing, so the compiler drops bounds checks and vectorises.
             if w >= 5 {
                 let n = w - 4;
-                let taps = [&src[0..n], &src[1..n + 1], &src[2..n + 2], &src[3..n + 3], &src[4..n + 4]];
+                let taps = [
+                    &src[0..n],
+                    &src[1..n + 1],
+                    &src[2..n + 2],
+                    &src[3..n + 3],
+                    &src[4..n + 4],
+                ];
                 for (i, d) in dst[2..w - 2].iter_mut().enumerate() {
                     *d = taps[0][i] as u16
                         + 4 * taps[1][i] as u16
@@ -159,13 +170,22 @@ impl Detector {
             // Rows y-2..=y+2 (clamped) must be in the ring; they are the last five computed.
             while computed <= (y + 2).min(h - 1) {
                 let r = ring_row(computed);
-                row_pass(&px[computed * w..(computed + 1) * w], &mut self.row_pass[r..r + w]);
+                row_pass(
+                    &px[computed * w..(computed + 1) * w],
+                    &mut self.row_pass[r..r + w],
+                );
                 computed += 1;
             }
             let tmp = &self.row_pass;
-            let rows = [y as isize - 2, y as isize - 1, y as isize, y as isize + 1, y as isize + 2]
-                .map(|r| ring_row(r.clamp(0, h as isize - 1) as usize))
-                .map(|r| &tmp[r..r + w]);
+            let rows = [
+                y as isize - 2,
+                y as isize - 1,
+                y as isize,
+                y as isize + 1,
+                y as isize + 2,
+            ]
+            .map(|r| ring_row(r.clamp(0, h as isize - 1) as usize))
+            .map(|r| &tmp[r..r + w]);
             let dst = &mut self.blurred[y * w..(y + 1) * w];
             for ((((d, a), b), c), (e, f)) in dst
                 .iter_mut()
@@ -179,7 +199,9 @@ impl Detector {
             let tiles = (y / TILE) * tiles_x..(y / TILE + 1) * tiles_x;
             let (mins, maxs) = (&mut self.tile_min[tiles.clone()], &mut self.tile_max[tiles]);
             for ((lo, hi), chunk) in mins.iter_mut().zip(maxs.iter_mut()).zip(dst.chunks(TILE)) {
-                let (cmin, cmax) = chunk.iter().fold((u16::MAX, 0u16), |(a, b), &v| (a.min(v), b.max(v)));
+                let (cmin, cmax) = chunk
+                    .iter()
+                    .fold((u16::MAX, 0u16), |(a, b), &v| (a.min(v), b.max(v)));
                 *lo = (*lo).min(cmin);
                 *hi = (*hi).max(cmax);
             }
@@ -254,7 +276,8 @@ impl Detector {
                     for x in x0..x1 {
                         let i = x - x0;
                         let at = |ii: usize, jj: usize| self.integral[jj * stride + ii];
-                        let sum = (at(i + side, j + side) - at(i, j + side) - at(i + side, j) + at(i, j)) as i64;
+                        let sum = (at(i + side, j + side) - at(i, j + side) - at(i + side, j)
+                            + at(i, j)) as i64;
                         let b = self.blurred[y * w + x] as i64;
                         self.mask[y * w + x] = (b * area + offset >= sum) as u8;
                     }
@@ -278,7 +301,9 @@ impl Detector {
 
     /// Mean of the blurred image over the threshold box around pixel `i` (grey levels).
     fn local_mean(&self, w: usize, h: usize, half: usize, i: usize) -> f64 {
-        self.box_sum(w, h, half, i % w, i / w) as f64 / ((2 * half + 1) * (2 * half + 1)) as f64 / 256.0
+        self.box_sum(w, h, half, i % w, i / w) as f64
+            / ((2 * half + 1) * (2 * half + 1)) as f64
+            / 256.0
     }
 
     fn label(&mut self, image: ImageView<'_>, config: &DetectConfig, out: &mut Vec<Detection>) {
@@ -341,10 +366,18 @@ impl Detector {
     /// separated intensity peaks, or failing that cut in two by intensity-weighted 2-means along its
     /// long axis, and kept only if every part comes out round. 2-means parts are flagged
     /// `from_overlap`.
-    fn resolve(&self, image: ImageView<'_>, config: &DetectConfig, label: u32, out: &mut Vec<Detection>) {
+    fn resolve(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        label: u32,
+        out: &mut Vec<Detection>,
+    ) {
         let w = image.width;
         let region = &self.region;
-        let elongated = |p: &[u32]| config.max_axis_ratio > 0.0 && p.len() >= 12 && axis_ratio(p, w) > config.max_axis_ratio;
+        let elongated = |p: &[u32]| {
+            config.max_axis_ratio > 0.0 && p.len() >= 12 && axis_ratio(p, w) > config.max_axis_ratio
+        };
         if !elongated(region) {
             out.extend(self.measure(image, config, region));
             return;
@@ -358,18 +391,31 @@ impl Detector {
             Some(parts) => (parts, false),
             None => (self.two_means(image, config, region), true),
         };
-        if parts.iter().all(|p| p.len() >= config.min_area_px && !elongated(p)) {
+        if parts
+            .iter()
+            .all(|p| p.len() >= config.min_area_px && !elongated(p))
+        {
             for part in &parts {
-                out.extend(self.measure(image, config, part).map(|d| Detection { from_overlap, ..d }));
+                out.extend(
+                    self.measure(image, config, part)
+                        .map(|d| Detection { from_overlap, ..d }),
+                );
             }
         }
     }
 
     /// Splits a region in two along its long axis.
-    fn two_means(&self, image: ImageView<'_>, config: &DetectConfig, pixels: &[u32]) -> Vec<Vec<u32>> {
+    fn two_means(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        pixels: &[u32],
+    ) -> Vec<Vec<u32>> {
         let w = image.width;
         let at = |i: u32| ((i as usize % w) as f64, (i as usize / w) as f64);
-        let (mx, my) = pixels.iter().fold((0.0, 0.0), |(x, y), &i| (x + at(i).0, y + at(i).1));
+        let (mx, my) = pixels
+            .iter()
+            .fold((0.0, 0.0), |(x, y), &i| (x + at(i).0, y + at(i).1));
         let (mx, my) = (mx / pixels.len() as f64, my / pixels.len() as f64);
         // Seed the two centres on the long axis, one standard deviation out.
         let (mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0);
@@ -382,18 +428,33 @@ impl Detector {
         let angle = 0.5 * (2.0 * xy).atan2(xx - yy);
         let spread = ((xx + yy) / pixels.len() as f64).sqrt();
         let (ux, uy) = (angle.cos() * spread, angle.sin() * spread);
-        self.k_means(image, config, pixels, vec![(mx - ux, my - uy), (mx + ux, my + uy)])
+        self.k_means(
+            image,
+            config,
+            pixels,
+            vec![(mx - ux, my - uy), (mx + ux, my + uy)],
+        )
     }
 
     /// Intensity-weighted k-means of a region's pixels from the given seeds (a few rounds suffice
     /// for the handful of pixels in a particle image).
-    fn k_means(&self, image: ImageView<'_>, config: &DetectConfig, pixels: &[u32], mut centres: Vec<(f64, f64)>) -> Vec<Vec<u32>> {
+    fn k_means(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        pixels: &[u32],
+        mut centres: Vec<(f64, f64)>,
+    ) -> Vec<Vec<u32>> {
         let w = image.width;
         let points: Vec<(f64, f64, f64)> = pixels
             .iter()
             .map(|&i| {
                 let i = i as usize;
-                ((i % w) as f64, (i / w) as f64, self.weight(image, config, i).max(1e-9))
+                (
+                    (i % w) as f64,
+                    (i / w) as f64,
+                    self.weight(image, config, i).max(1e-9),
+                )
             })
             .collect();
         let mut nearest = vec![0usize; points.len()];
@@ -431,7 +492,12 @@ impl Detector {
         parts
     }
 
-    fn measure(&self, image: ImageView<'_>, config: &DetectConfig, pixels: &[u32]) -> Option<Detection> {
+    fn measure(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        pixels: &[u32],
+    ) -> Option<Detection> {
         let w = image.width;
         let (mut m00, mut m10, mut m01) = (0.0, 0.0, 0.0);
         for &i in pixels {
@@ -459,7 +525,12 @@ impl Detector {
 
     /// Splits the current region between its separated peaks of the blurred image; `None` when
     /// it has one peak, or peaks joined without a real dip (a flat-topped disc with noise).
-    fn split_at_peaks(&self, image: ImageView<'_>, config: &DetectConfig, label: u32) -> Option<Vec<Vec<u32>>> {
+    fn split_at_peaks(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        label: u32,
+    ) -> Option<Vec<Vec<u32>>> {
         let w = image.width;
         let h = image.height;
         let b = &self.blurred;
@@ -502,7 +573,10 @@ impl Detector {
         if kept.len() < 2 {
             return None;
         }
-        let seeds = kept.iter().map(|&k| ((k % w) as f64, (k / w) as f64)).collect();
+        let seeds = kept
+            .iter()
+            .map(|&k| ((k % w) as f64, (k / w) as f64))
+            .collect();
         Some(self.k_means(image, config, region, seeds))
     }
 }
@@ -588,8 +662,16 @@ mod tests {
         let d = detect(8, &img, &DetectConfig::default());
         assert_eq!(d.len(), 1);
         // Moments over the raw intensities: (3*100 + 4*200 + 3*200 + 4*200) / 700 etc.
-        assert!((d[0].centroid.x - 2500.0 / 700.0).abs() < 1e-9, "{:?}", d[0]);
-        assert!((d[0].centroid.y - 1800.0 / 700.0).abs() < 1e-9, "{:?}", d[0]);
+        assert!(
+            (d[0].centroid.x - 2500.0 / 700.0).abs() < 1e-9,
+            "{:?}",
+            d[0]
+        );
+        assert!(
+            (d[0].centroid.y - 1800.0 / 700.0).abs() < 1e-9,
+            "{:?}",
+            d[0]
+        );
         assert!(d[0].diameter_px > 2.0);
     }
 
@@ -631,11 +713,19 @@ mod tests {
         }
         let split = detect(w, &img, &DetectConfig::default());
         assert_eq!(split.len(), 2, "{split:?}");
-        assert!(split.iter().all(|d| !d.from_overlap), "separated by a dip: touching, not overlapping");
+        assert!(
+            split.iter().all(|d| !d.from_overlap),
+            "separated by a dip: touching, not overlapping"
+        );
         // Each part keeps its half of the bridge (the middle column goes to one side), which pulls
         // its centroid inwards by at most 600 * 3.5 / 4120 = 0.51 px.
-        assert!((split[0].centroid.x - 5.5).abs() < 0.52 && (split[1].centroid.x - 14.5).abs() < 0.52, "{split:?}");
-        assert!((split[0].centroid.y - 5.5).abs() < 1e-9 && (split[1].centroid.y - 5.5).abs() < 1e-9);
+        assert!(
+            (split[0].centroid.x - 5.5).abs() < 0.52 && (split[1].centroid.x - 14.5).abs() < 0.52,
+            "{split:?}"
+        );
+        assert!(
+            (split[0].centroid.y - 5.5).abs() < 1e-9 && (split[1].centroid.y - 5.5).abs() < 1e-9
+        );
         let whole = DetectConfig {
             split_touching: false,
             max_axis_ratio: 0.0,
@@ -646,7 +736,10 @@ mod tests {
             split_touching: false,
             ..Default::default()
         };
-        assert!(detect(w, &img, &elongated).is_empty(), "merged pair is elongated");
+        assert!(
+            detect(w, &img, &elongated).is_empty(),
+            "merged pair is elongated"
+        );
     }
 
     #[test]
@@ -665,7 +758,10 @@ mod tests {
         assert!(d.iter().all(|d| d.from_overlap));
         let mut xs: Vec<f64> = d.iter().map(|d| d.centroid.x).collect();
         xs.sort_by(f64::total_cmp);
-        assert!((xs[0] - 11.0).abs() < 0.8 && (xs[1] - 17.0).abs() < 0.8, "{xs:?}");
+        assert!(
+            (xs[0] - 11.0).abs() < 0.8 && (xs[1] - 17.0).abs() < 0.8,
+            "{xs:?}"
+        );
     }
 
     #[test]
@@ -699,6 +795,9 @@ mod tests {
         let d = detect(10, &img, &keep);
         assert_eq!(d.len(), 1);
         assert!((d[0].centroid.x - 0.5).abs() < 1e-9 && (d[0].centroid.y - 0.5).abs() < 1e-9);
-        assert!(detect(10, &img, &DetectConfig::default()).is_empty(), "clipped particle dropped by default");
+        assert!(
+            detect(10, &img, &DetectConfig::default()).is_empty(),
+            "clipped particle dropped by default"
+        );
     }
 }

@@ -27,7 +27,7 @@ pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Qu
         .iter()
         .map(|(t, _)| (t - t_eval_s).abs())
         .fold(0.0, f64::max);
-    if !(scale_s > 0.0) {
+    if scale_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let mut normal = Matrix3::<f64>::zeros();
@@ -40,10 +40,21 @@ pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Qu
     }
     // Rows of `coefficients` are a, b, c; columns are x, y, z.
     let coefficients = normal.try_inverse()? * rhs;
-    let a = Vector3::new(coefficients[(0, 0)], coefficients[(0, 1)], coefficients[(0, 2)]);
-    let b = Vector3::new(coefficients[(1, 0)], coefficients[(1, 1)], coefficients[(1, 2)]) / scale_s;
-    let c = Vector3::new(coefficients[(2, 0)], coefficients[(2, 1)], coefficients[(2, 2)])
-        / (scale_s * scale_s);
+    let a = Vector3::new(
+        coefficients[(0, 0)],
+        coefficients[(0, 1)],
+        coefficients[(0, 2)],
+    );
+    let b = Vector3::new(
+        coefficients[(1, 0)],
+        coefficients[(1, 1)],
+        coefficients[(1, 2)],
+    ) / scale_s;
+    let c = Vector3::new(
+        coefficients[(2, 0)],
+        coefficients[(2, 1)],
+        coefficients[(2, 2)],
+    ) / (scale_s * scale_s);
     let squared: f64 = samples
         .iter()
         .map(|(t, p)| {
@@ -56,7 +67,12 @@ pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Qu
         velocity: b,
         rms_residual: (squared / samples.len() as f64).sqrt(),
     };
-    (fit.position.coords.iter().chain(fit.velocity.iter()).all(|v| v.is_finite())).then_some(fit)
+    (fit.position
+        .coords
+        .iter()
+        .chain(fit.velocity.iter())
+        .all(|v| v.is_finite()))
+    .then_some(fit)
 }
 
 #[cfg(test)]

@@ -173,7 +173,12 @@ impl CameraLinker {
     }
 
     /// Links one frame's features to the active tracks; returns them in the input order.
-    pub fn push(&mut self, features: &[Feature], scale: CostScale, config: &LinkConfig) -> Vec<LinkedFeature> {
+    pub fn push(
+        &mut self,
+        features: &[Feature],
+        scale: CostScale,
+        config: &LinkConfig,
+    ) -> Vec<LinkedFeature> {
         let d_ave = mean(features.iter().map(|f| f.diameter_px));
         let b_ave = mean(features.iter().map(|f| f.brightness));
         let predictions: Vec<RectPoint> = (0..self.tracks.len())
@@ -197,7 +202,12 @@ impl CameraLinker {
                 candidates.push((g, t, f));
             }
         }
-        let pairs = assign(candidates, self.tracks.len(), features.len(), config.assignment);
+        let pairs = assign(
+            candidates,
+            self.tracks.len(),
+            features.len(),
+            config.assignment,
+        );
         let mut track_of_feature: Vec<Option<usize>> = vec![None; features.len()];
         for (t, f) in pairs {
             track_of_feature[f] = Some(t);
@@ -306,7 +316,11 @@ pub(crate) struct SortedByX {
 
 impl SortedByX {
     pub(crate) fn new(features: &[Feature]) -> Self {
-        let mut order: Vec<(f64, usize)> = features.iter().enumerate().map(|(i, f)| (f.rect.x, i)).collect();
+        let mut order: Vec<(f64, usize)> = features
+            .iter()
+            .enumerate()
+            .map(|(i, f)| (f.rect.x, i))
+            .collect();
         order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         Self { order }
     }
@@ -349,7 +363,11 @@ mod tests {
         for n in 1..10 {
             let n = n as f64;
             // Given in reverse order: identity must follow position, not index.
-            let linked = linker.push(&[feature(100.0 - 3.0 * n, 50.0), feature(4.0 * n, n)], SCALE, &config);
+            let linked = linker.push(
+                &[feature(100.0 - 3.0 * n, 50.0), feature(4.0 * n, n)],
+                SCALE,
+                &config,
+            );
             assert_eq!(ids(&linked), vec![first[1].track_id, first[0].track_id]);
         }
     }
@@ -365,7 +383,14 @@ mod tests {
         let mut a_ids = Vec::new();
         for n in 0..8 {
             let n = n as f64;
-            let linked = linker.push(&[feature(5.0 * n, 20.0 + n), feature(35.0 - 5.0 * n, 27.0 - n)], SCALE, &config);
+            let linked = linker.push(
+                &[
+                    feature(5.0 * n, 20.0 + n),
+                    feature(35.0 - 5.0 * n, 27.0 - n),
+                ],
+                SCALE,
+                &config,
+            );
             a_ids.push(linked[0].track_id);
         }
         assert!(a_ids.windows(2).all(|w| w[0] == w[1]), "{a_ids:?}");
@@ -417,8 +442,24 @@ mod tests {
         // Established particles move 15 px/frame, beyond the box; a newcomer does too.
         linker.push(&[feature(0.0, 0.0), feature(0.0, 40.0)], SCALE, &config);
         linker.push(&[feature(6.0, 0.0), feature(6.0, 40.0)], SCALE, &config);
-        linker.push(&[feature(12.0, 0.0), feature(12.0, 40.0), feature(100.0, 20.0)], SCALE, &config);
-        let with = linker.push(&[feature(18.0, 0.0), feature(18.0, 40.0), feature(106.0, 20.0)], SCALE, &config);
+        linker.push(
+            &[
+                feature(12.0, 0.0),
+                feature(12.0, 40.0),
+                feature(100.0, 20.0),
+            ],
+            SCALE,
+            &config,
+        );
+        let with = linker.push(
+            &[
+                feature(18.0, 0.0),
+                feature(18.0, 40.0),
+                feature(106.0, 20.0),
+            ],
+            SCALE,
+            &config,
+        );
         assert_eq!(with[2].age, 2, "newcomer linked using neighbour motion");
         let mut plain = CameraLinker::new();
         let method = LinkConfig {
@@ -434,7 +475,13 @@ mod tests {
     #[test]
     fn per_particle_loser_goes_unmatched_one_to_one_gets_next_best() {
         let candidates = vec![(0.1, 0, 0), (0.2, 1, 0), (0.5, 1, 1)];
-        assert_eq!(assign(candidates.clone(), 2, 2, Assignment::PerParticle), vec![(0, 0)]);
-        assert_eq!(assign(candidates, 2, 2, Assignment::OneToOne), vec![(0, 0), (1, 1)]);
+        assert_eq!(
+            assign(candidates.clone(), 2, 2, Assignment::PerParticle),
+            vec![(0, 0)]
+        );
+        assert_eq!(
+            assign(candidates, 2, 2, Assignment::OneToOne),
+            vec![(0, 0), (1, 1)]
+        );
     }
 }

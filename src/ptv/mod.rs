@@ -11,7 +11,9 @@ pub mod pipeline;
 pub mod stereo;
 
 pub use detect::{Detection, Detector};
-pub use pipeline::{FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError, VelocityVector};
+pub use pipeline::{
+    FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError, VelocityVector,
+};
 
 use crate::geometry::PixelPoint;
 use nalgebra::Isometry3;
@@ -27,7 +29,11 @@ pub struct ImageView<'a> {
 impl<'a> ImageView<'a> {
     /// `None` when the buffer does not hold exactly `width * height` pixels.
     pub fn new(width: usize, height: usize, pixels: &'a [u8]) -> Option<Self> {
-        (width.checked_mul(height) == Some(pixels.len())).then_some(Self { width, height, pixels })
+        (width.checked_mul(height) == Some(pixels.len())).then_some(Self {
+            width,
+            height,
+            pixels,
+        })
     }
 
     /// Bilinear intensity at a sub-pixel position, clamped to the image.
@@ -38,7 +44,8 @@ impl<'a> ImageView<'a> {
         let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let at = |xx: usize, yy: usize| self.pixels[yy * self.width + xx] as f64;
-        (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy) + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy
+        (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
+            + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy
     }
 }
 

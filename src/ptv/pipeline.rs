@@ -79,24 +79,35 @@ impl PipelineConfig {
     }
 
     pub fn validate(&self) -> Result<(), PipelineError> {
-        let bad = |field: &str, reason: &str| {
-            Err(PipelineError::Config(format!("{field}: {reason}")))
-        };
+        let bad =
+            |field: &str, reason: &str| Err(PipelineError::Config(format!("{field}: {reason}")));
         let finite_non_negative = [
             ("detect.split_dip_fraction", self.detect.split_dip_fraction),
             ("link.box_half_side_px", self.link.box_half_side_px),
             ("link.weight_diameter", self.link.weight_diameter),
             ("link.weight_brightness", self.link.weight_brightness),
             ("link.weight_x", self.link.weight_x),
-            ("stereo.disparity_range_fraction", self.stereo.disparity_range_fraction),
-            ("stereo.epipolar_band_fraction", self.stereo.epipolar_band_fraction),
+            (
+                "stereo.disparity_range_fraction",
+                self.stereo.disparity_range_fraction,
+            ),
+            (
+                "stereo.epipolar_band_fraction",
+                self.stereo.epipolar_band_fraction,
+            ),
             ("stereo.weight_diameter", self.stereo.weight_diameter),
             ("stereo.weight_speed", self.stereo.weight_speed),
             ("stereo.weight_brightness", self.stereo.weight_brightness),
             ("stereo.pair_memory", self.stereo.pair_memory),
             ("stereo.weight_row", self.stereo.weight_row),
-            ("velocity.max_residual_ratio", self.velocity.max_residual_ratio),
-            ("velocity.disparity_sigma_px", self.velocity.disparity_sigma_px),
+            (
+                "velocity.max_residual_ratio",
+                self.velocity.max_residual_ratio,
+            ),
+            (
+                "velocity.disparity_sigma_px",
+                self.velocity.disparity_sigma_px,
+            ),
             ("velocity.residual_floor_m", self.velocity.residual_floor_m),
         ];
         for (field, v) in finite_non_negative {
@@ -114,7 +125,10 @@ impl PipelineConfig {
             return bad("detect.min_area_px", "must not exceed detect.max_area_px");
         }
         if self.stereo.pair_memory >= 1.0 {
-            return bad("stereo.pair_memory", "must be below 1 (1 would never update)");
+            return bad(
+                "stereo.pair_memory",
+                "must be below 1 (1 would never update)",
+            );
         }
         if self.velocity.half_window_frames == 0 {
             return bad("velocity.half_window_frames", "must be >= 1");
@@ -145,7 +159,11 @@ pub enum PipelineError {
         expected_height: u32,
     },
     #[error("frame {index}: timestamp {t_s} s is not finite or not after the previous frame's {previous_s} s")]
-    Timestamp { index: u64, t_s: f64, previous_s: f64 },
+    Timestamp {
+        index: u64,
+        t_s: f64,
+        previous_s: f64,
+    },
 }
 
 /// A particle matched in both cameras this frame.
@@ -264,7 +282,12 @@ impl Pipeline {
         &self.rectification
     }
 
-    fn check_image(&self, index: u64, camera: &'static str, image: &ImageView<'_>) -> Result<(), PipelineError> {
+    fn check_image(
+        &self,
+        index: u64,
+        camera: &'static str,
+        image: &ImageView<'_>,
+    ) -> Result<(), PipelineError> {
         if image.width != self.rig.width as usize || image.height != self.rig.height as usize {
             return Err(PipelineError::ImageSize {
                 index,
@@ -312,9 +335,19 @@ impl Pipeline {
             half_width_px: rect.half_width_px,
             half_height_px: rect.half_height_px,
         };
-        let left = self.left_linker.push(&left_features, scale, &self.config.link);
-        let right = self.right_linker.push(&right_features, scale, &self.config.link);
-        let pairs = match_stereo(&left, &right, scale, &mut self.pair_history, &self.config.stereo);
+        let left = self
+            .left_linker
+            .push(&left_features, scale, &self.config.link);
+        let right = self
+            .right_linker
+            .push(&right_features, scale, &self.config.link);
+        let pairs = match_stereo(
+            &left,
+            &right,
+            scale,
+            &mut self.pair_history,
+            &self.config.stereo,
+        );
 
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
         let mut tracks = BTreeMap::new();
@@ -334,7 +367,11 @@ impl Pipeline {
             let mut track = match self.tracks.remove(&l.track_id) {
                 // Without track-consistent pairing (the method) a left track keeps its 3D track
                 // whatever its partner; with it, a new partner means a new particle.
-                Some(old) if old.right_track == r.track_id || self.config.stereo.pair_memory == 0.0 => old,
+                Some(old)
+                    if old.right_track == r.track_id || self.config.stereo.pair_memory == 0.0 =>
+                {
+                    old
+                }
                 _ => {
                     self.next_track_id += 1;
                     Track3d {
@@ -398,7 +435,9 @@ impl Pipeline {
         let centre = track.samples.iter().find(|s| s.seq == centre_seq)?;
         let before = clean().filter(|s| s.seq < centre_seq).count() as u64;
         let after = clean().filter(|s| s.seq > centre_seq).count() as u64;
-        let needed = m.saturating_sub(self.config.velocity.max_missing_per_side as u64).max(1);
+        let needed = m
+            .saturating_sub(self.config.velocity.max_missing_per_side as u64)
+            .max(1);
         if before < needed || after < needed {
             return None;
         }
@@ -426,10 +465,10 @@ impl Pipeline {
 
 /// Rectifies detections, dropping any whose centroid the lens model cannot undistort; returns the
 /// features and, index for index, the detections they came from.
-fn rectify<'d>(
-    detections: &'d [Detection],
+fn rectify(
+    detections: &[Detection],
     to_rect: impl Fn(PixelPoint) -> Option<crate::geometry::RectPoint>,
-) -> (Vec<Feature>, Vec<&'d Detection>) {
+) -> (Vec<Feature>, Vec<&Detection>) {
     detections
         .iter()
         .filter_map(|d| {
@@ -445,4 +484,109 @@ fn rectify<'d>(
             })
         })
         .unzip()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{Scenario, ScenarioSpec, Synthesizer};
+
+    fn frame<'a>(
+        index: u64,
+        t_s: f64,
+        w: usize,
+        h: usize,
+        left: &'a [u8],
+        right: &'a [u8],
+    ) -> StereoFrame<'a> {
+        StereoFrame {
+            index,
+            t_s,
+            world_from_rig: None,
+            left: ImageView::new(w, h, left).expect("sized"),
+            right: ImageView::new(w, h, right).expect("sized"),
+        }
+    }
+
+    #[test]
+    fn bad_frames_are_rejected_and_leave_the_state_untouched() {
+        let spec = ScenarioSpec::new(Scenario::Flume);
+        let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
+        let mut synth = Synthesizer::new(spec.clone(), 20, 1);
+        let frames: Vec<_> = (0..14).map(|_| synth.next_frame()).collect();
+        let run = |with_faults: bool| {
+            let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+            let mut vectors = Vec::new();
+            for f in &frames {
+                if with_faults {
+                    let small = vec![0u8; 16 * 16];
+                    let e = pipeline
+                        .push(&frame(f.index, f.t_s, 16, 16, &small, &small))
+                        .unwrap_err();
+                    assert!(
+                        e.to_string()
+                            .contains("left image is 16x16, calibration says 640x480"),
+                        "{e}"
+                    );
+                    if f.index > 0 {
+                        let e = pipeline
+                            .push(&frame(f.index, f.t_s - 1.0, w, h, &f.left, &f.right))
+                            .unwrap_err();
+                        assert!(matches!(e, PipelineError::Timestamp { .. }), "{e}");
+                    }
+                    let e = pipeline
+                        .push(&frame(f.index, f64::NAN, w, h, &f.left, &f.right))
+                        .unwrap_err();
+                    assert!(matches!(e, PipelineError::Timestamp { .. }), "{e}");
+                }
+                vectors.extend(
+                    pipeline
+                        .push(&frame(f.index, f.t_s, w, h, &f.left, &f.right))
+                        .expect("valid")
+                        .vectors,
+                );
+            }
+            vectors
+        };
+        let clean = run(false);
+        assert!(!clean.is_empty());
+        assert_eq!(clean, run(true), "rejected frames change nothing");
+    }
+
+    #[test]
+    fn invalid_config_is_refused_up_front() {
+        let spec = ScenarioSpec::new(Scenario::Flume);
+        let mut config = PipelineConfig::default();
+        config.detect.box_size_px = 14;
+        let e = Pipeline::new(spec.rig.clone(), config)
+            .err()
+            .expect("refused");
+        assert_eq!(
+            e.to_string(),
+            "config: detect.box_size_px: must be odd and >= 3"
+        );
+        let mut config = PipelineConfig::default();
+        config.velocity.max_missing_per_side = 5;
+        assert!(Pipeline::new(spec.rig, config).is_err());
+    }
+
+    #[test]
+    fn vectors_arrive_m_frames_late_for_the_centre_frame() {
+        let spec = ScenarioSpec::new(Scenario::Flume);
+        let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
+        let mut synth = Synthesizer::new(spec.clone(), 10, 2);
+        let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+        let m = spec.config.velocity.half_window_frames as u64;
+        for _ in 0..20 {
+            let f = synth.next_frame();
+            let out = pipeline
+                .push(&frame(f.index, f.t_s, w, h, &f.left, &f.right))
+                .expect("valid");
+            assert!(
+                out.vectors.iter().all(|v| v.frame_index + m == f.index),
+                "centre lags by M"
+            );
+            assert_eq!(out.stats.vectors, out.vectors.len());
+        }
+    }
 }

@@ -109,7 +109,8 @@ pub fn match_stereo(
                 + config.weight_speed * speed_term
                 + config.weight_brightness
                     * ((l.feature.brightness - r.feature.brightness) / b_ave).powi(2)
-                + config.weight_row * ((l.feature.rect.y - r.feature.rect.y) / scale.half_height_px).powi(2);
+                + config.weight_row
+                    * ((l.feature.rect.y - r.feature.rect.y) / scale.half_height_px).powi(2);
             let key = (l.track_id, r.track_id);
             let effective = match history.get(&key) {
                 Some(past) if memory > 0.0 => memory * past + (1.0 - memory) * cost,
@@ -151,8 +152,18 @@ mod tests {
     #[test]
     fn hard_filter_rejects_negative_disparity_and_off_row() {
         let left = [linked(1, 0.0, 0.0, 5.0)];
-        let right = [linked(9, 5.0, 0.0, 5.0), linked(8, -10.0, 6.0, 5.0), linked(7, -200.0, 0.0, 5.0)];
-        let pairs = match_stereo(&left, &right, SCALE, &mut PairHistory::new(), &StereoConfig::default());
+        let right = [
+            linked(9, 5.0, 0.0, 5.0),
+            linked(8, -10.0, 6.0, 5.0),
+            linked(7, -200.0, 0.0, 5.0),
+        ];
+        let pairs = match_stereo(
+            &left,
+            &right,
+            SCALE,
+            &mut PairHistory::new(),
+            &StereoConfig::default(),
+        );
         assert!(pairs.is_empty(), "{pairs:?}");
     }
 
@@ -160,7 +171,13 @@ mod tests {
     fn monocular_cue_picks_the_match_on_a_shared_row() {
         let left = [linked(1, 50.0, 10.0, 8.0)];
         let right = [linked(2, 20.0, 10.0, 4.0), linked(3, 30.0, 10.0, 8.0)];
-        let pairs = match_stereo(&left, &right, SCALE, &mut PairHistory::new(), &StereoConfig::default());
+        let pairs = match_stereo(
+            &left,
+            &right,
+            SCALE,
+            &mut PairHistory::new(),
+            &StereoConfig::default(),
+        );
         assert_eq!(pairs, vec![(0, 1)]);
     }
 
@@ -172,7 +189,10 @@ mod tests {
         for _ in 0..5 {
             let left = [linked(1, 50.0, 10.0, 8.0)];
             let right = [linked(2, 20.0, 10.0, 8.0), linked(3, 30.0, 10.0, 5.0)];
-            assert_eq!(match_stereo(&left, &right, SCALE, &mut history, &config), vec![(0, 0)]);
+            assert_eq!(
+                match_stereo(&left, &right, SCALE, &mut history, &config),
+                vec![(0, 0)]
+            );
         }
         // ... then one frame where noise makes track 3 look slightly better.
         let left = [linked(1, 50.0, 10.0, 8.0)];
@@ -182,7 +202,13 @@ mod tests {
             pair_memory: 0.0,
             ..config.clone()
         };
-        assert_eq!(match_stereo(&left, &right, SCALE, &mut fresh, &method), vec![(0, 1)]);
-        assert_eq!(match_stereo(&left, &right, SCALE, &mut history, &config), vec![(0, 0)]);
+        assert_eq!(
+            match_stereo(&left, &right, SCALE, &mut fresh, &method),
+            vec![(0, 1)]
+        );
+        assert_eq!(
+            match_stereo(&left, &right, SCALE, &mut history, &config),
+            vec![(0, 0)]
+        );
     }
 }

@@ -1,0 +1,170 @@
+//! The whole pipeline on synthetic scenes with known truth, against stated tolerances.
+//! Each bound is the acceptance bound; the figures actually reached are in README.md.
+
+use mrptv::eval::{EvalOptions, Report};
+use mrptv::offline::run_in_memory;
+use mrptv::ptv::PipelineConfig;
+use mrptv::synth::{Scenario, ScenarioSpec};
+
+fn run(scenario: Scenario, config: Option<PipelineConfig>, seed: u64) -> Report {
+    let spec = ScenarioSpec::new(scenario);
+    let config = config.unwrap_or_else(|| spec.config.clone());
+    let eval = EvalOptions {
+        window_frames: config.velocity.half_window_frames as u64,
+        ..Default::default()
+    };
+    let (frames, particles) = (spec.default_frames, spec.default_particles);
+    run_in_memory(spec, config, frames, particles, seed, &eval, |_| {})
+        .expect("scenario runs")
+        .report
+}
+
+/// Relative RMS velocity error bounds (in-plane u and v, out-of-plane w), ghost rate and
+/// measurable yield, with every bound scaled by `factor`.
+fn assert_bounds(name: &str, r: &Report, factor: f64) {
+    let e = &r.relative_rms_velocity_error;
+    println!(
+        "{name}: u {:.4} v {:.4} w {:.4} ghost {:.4} yield {:.4} (measurable {:.4})",
+        e.x, e.y, e.z, r.ghost_rate, r.yield_fraction, r.measurable_yield
+    );
+    assert!(
+        e.x <= 0.02 * factor && e.y <= 0.02 * factor,
+        "{name}: in-plane error {:.4} {:.4}",
+        e.x,
+        e.y
+    );
+    assert!(
+        e.z <= 0.05 * factor,
+        "{name}: out-of-plane error {:.4}",
+        e.z
+    );
+    assert!(
+        r.ghost_rate <= 0.02 * factor,
+        "{name}: ghost rate {:.4}",
+        r.ghost_rate
+    );
+    assert!(
+        r.measurable_yield >= 0.80 / factor,
+        "{name}: measurable yield {:.4}",
+        r.measurable_yield
+    );
+    assert!(r.track_rows > 500, "{name}: only {} vectors", r.track_rows);
+}
+
+#[test]
+fn uniform_flow_meets_the_published_bounds() {
+    assert_bounds("uniform", &run(Scenario::Uniform, None, 1), 1.0);
+}
+
+#[test]
+fn uniform_flow_bounds_hold_for_other_seeds() {
+    for seed in [2, 3] {
+        assert_bounds(
+            &format!("uniform seed {seed}"),
+            &run(Scenario::Uniform, None, seed),
+            1.0,
+        );
+    }
+}
+
+#[test]
+fn moving_head_world_velocities_meet_the_same_bounds() {
+    assert_bounds("moving-head", &run(Scenario::MovingHead, None, 1), 1.0);
+}
+
+#[test]
+fn raw_hololens_geometry_within_a_factor_of_one_and_a_half() {
+    assert_bounds("hololens-raw", &run(Scenario::HololensRaw, None, 1), 1.5);
+}
+
+#[test]
+fn mrptv_improvements_beat_the_published_method_on_the_uniform_case() {
+    let spec = ScenarioSpec::new(Scenario::Uniform);
+    let mut method = PipelineConfig::method();
+    method.velocity.half_window_frames = spec.config.velocity.half_window_frames;
+    let ours = run(Scenario::Uniform, None, 1);
+    let theirs = run(Scenario::Uniform, Some(method), 1);
+    println!("method: {theirs:?}");
+    assert!(ours.relative_rms_velocity_error.z < theirs.relative_rms_velocity_error.z);
+    assert!(ours.ghost_rate <= theirs.ghost_rate);
+    assert!(ours.outlier_rate < theirs.outlier_rate);
+}
+
+#[test]
+fn ignoring_the_head_pose_corrupts_world_velocities() {
+    // The same moving-head frames processed as if the head were still: the wearer's motion ends up
+    // in the velocities, so the pose handling is what makes the bounds above hold.
+    use mrptv::eval::evaluate;
+    use mrptv::ptv::{ImageView, Pipeline, StereoFrame};
+    use mrptv::synth::Synthesizer;
+    use mrptv::tables::TrackRow;
+    let spec = ScenarioSpec::new(Scenario::MovingHead);
+    let mut synth = Synthesizer::new(spec.clone(), spec.default_particles, 1);
+    let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+    let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
+    let (mut truth, mut tracks) = (Vec::new(), Vec::new());
+    for _ in 0..spec.default_frames {
+        let f = synth.next_frame();
+        let frame = StereoFrame {
+            index: f.index,
+            t_s: f.t_s,
+            world_from_rig: None,
+            left: ImageView::new(w, h, &f.left).expect("sized"),
+            right: ImageView::new(w, h, &f.right).expect("sized"),
+        };
+        let out = pipeline.push(&frame).expect("valid frame");
+        tracks.extend(out.vectors.iter().map(|v| TrackRow {
+            frame: v.frame_index,
+            t_s: v.t_s,
+            track_id: v.track_id,
+            position: v.position_in_world,
+            velocity: v.velocity_in_world,
+        }));
+        truth.extend(f.truth);
+    }
+    let r = evaluate(
+        &truth,
+        &tracks,
+        &EvalOptions {
+            radius_m: 0.05,
+            ..Default::default()
+        },
+    )
+    .expect("scored");
+    println!(
+        "pose ignored: ghost {:.3} rel {:?}",
+        r.ghost_rate, r.relative_rms_velocity_error
+    );
+    assert!(
+        r.ghost_rate > 0.2 || r.relative_rms_velocity_error.x > 0.1,
+        "{r:?}"
+    );
+}
+
+#[test]
+fn hard_scenarios_run_and_stay_sane() {
+    // No acceptance bound: these report figures (README). They must still produce mostly
+    // correct vectors.
+    for scenario in [
+        Scenario::Turbulence,
+        Scenario::Dense,
+        Scenario::WindTunnel,
+        Scenario::Flume,
+    ] {
+        let r = run(scenario, None, 1);
+        println!(
+            "{scenario}: {:?} ghost {:.4} yield {:.4}",
+            r.relative_rms_velocity_error, r.ghost_rate, r.measurable_yield
+        );
+        assert!(
+            r.association_rate > 0.95,
+            "{scenario}: association {:.3}",
+            r.association_rate
+        );
+        assert!(
+            r.relative_rms_velocity_error.z < 0.1,
+            "{scenario}: {:?}",
+            r.relative_rms_velocity_error
+        );
+    }
+}

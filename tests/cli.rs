@@ -1,0 +1,245 @@
+//! The `mrptv` binary end to end: synth -> process -> eval, determinism, and clear errors on bad
+//! input (each names the file and what is wrong, exits non-zero, and never panics).
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn mrptv(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mrptv"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = mrptv(args);
+    assert!(
+        out.status.success(),
+        "mrptv {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Runs a command that must fail; returns its stderr.
+fn fails(args: &[&str]) -> String {
+    let out = mrptv(args);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "mrptv {args:?} should fail");
+    assert!(
+        !stderr.contains("panicked"),
+        "mrptv {args:?} panicked: {stderr}"
+    );
+    stderr
+}
+
+fn synth(dir: &Path, scenario: &str, frames: &str) -> PathBuf {
+    let rec = dir.join(scenario);
+    ok(&[
+        "synth",
+        scenario,
+        rec.to_str().expect("utf8"),
+        "--frames",
+        frames,
+        "--seed",
+        "3",
+    ]);
+    rec
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf8 path")
+}
+
+#[test]
+fn synth_process_eval_round_trip_is_deterministic() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "moving-head", "40");
+    let header = fs::read_to_string(rec.join("frames.csv")).expect("frames");
+    assert!(
+        header.starts_with("index,t_s,world_from_rig_00,"),
+        "pose columns written"
+    );
+    assert!(fs::read_to_string(rec.join("truth.csv"))
+        .expect("truth")
+        .starts_with("frame,t_s,pid,x,y,z,u,v,w\n"));
+    let (t1, t2, p1, p2) = ["t1.csv", "t2.csv", "p1.csv", "p2.csv"]
+        .map(|n| dir.path().join(n))
+        .into();
+    ok(&["process", s(&rec), "--out", s(&t1), "--points", s(&p1)]);
+    ok(&["process", s(&rec), "--out", s(&t2), "--points", s(&p2)]);
+    let (a, b) = (fs::read(&t1).expect("t1"), fs::read(&t2).expect("t2"));
+    assert_eq!(a, b, "same recording and config, byte-identical tracks");
+    assert_eq!(fs::read(&p1).expect("p1"), fs::read(&p2).expect("p2"));
+    let tracks = String::from_utf8(a).expect("utf8");
+    assert!(tracks.starts_with("frame,t_s,track_id,x,y,z,u,v,w\n"));
+    assert!(tracks.lines().count() > 100, "vectors written");
+    let points = fs::read_to_string(&p1).expect("points");
+    assert!(points.starts_with("frame,t_s,x,y,z,xl,yl,xr,yr\n"));
+
+    let json = ok(&[
+        "eval",
+        s(&rec.join("truth.csv")),
+        s(&t1),
+        "--json",
+        "--window",
+        "5",
+    ]);
+    let report: serde_json::Value = serde_json::from_str(&json).expect("json report");
+    assert!(report["association_rate"].as_f64().expect("number") > 0.95);
+    let text = ok(&["eval", s(&rec.join("truth.csv")), s(&t1)]);
+    assert!(text.contains("ghost rate") && text.contains("by depth"));
+}
+
+#[test]
+fn single_frame_recording_gives_points_and_no_vectors() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "hololens-raw", "1");
+    let (tracks, points) = (dir.path().join("t.csv"), dir.path().join("p.csv"));
+    ok(&[
+        "process",
+        s(&rec),
+        "--out",
+        s(&tracks),
+        "--points",
+        s(&points),
+    ]);
+    assert_eq!(
+        fs::read_to_string(&tracks).expect("tracks").lines().count(),
+        1,
+        "header only"
+    );
+    let points = fs::read_to_string(&points).expect("points");
+    assert!(points.lines().count() > 10, "matched particles: {points}");
+}
+
+#[test]
+fn method_flag_and_config_file_are_honoured() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "flume", "30");
+    let config = dir.path().join("c.toml");
+    fs::write(&config, ok(&["config", "--method"])).expect("write config");
+    let (a, b) = (dir.path().join("a.csv"), dir.path().join("b.csv"));
+    ok(&["process", s(&rec), "--out", s(&a), "--config", s(&config)]);
+    ok(&["process", s(&rec), "--out", s(&b), "--method"]);
+    assert!(fs::read(&a).expect("a").len() > 40);
+}
+
+#[test]
+fn bad_inputs_get_clear_errors() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "flume", "3");
+    let out = dir.path().join("t.csv");
+    let process = |rec: &Path| fails(&["process", s(rec), "--out", s(&out)]);
+    let copy = |name: &str| {
+        let to = dir.path().join(name);
+        fs::create_dir_all(to.join("left")).expect("mkdir");
+        fs::create_dir_all(to.join("right")).expect("mkdir");
+        for f in ["rig.json", "frames.csv", "mrptv.toml"] {
+            fs::copy(rec.join(f), to.join(f)).expect("copy");
+        }
+        for side in ["left", "right"] {
+            for i in 0..3 {
+                let n = format!("{i:06}.png");
+                fs::copy(rec.join(side).join(&n), to.join(side).join(&n)).expect("copy png");
+            }
+        }
+        to
+    };
+
+    let e = process(&dir.path().join("nowhere"));
+    assert!(
+        e.contains("nowhere") && e.contains("not a recording directory"),
+        "{e}"
+    );
+
+    let r = copy("missing-rig");
+    fs::remove_file(r.join("rig.json")).expect("rm");
+    let e = process(&r);
+    assert!(e.contains("rig.json") && e.contains("No such file"), "{e}");
+
+    let r = copy("malformed-rig");
+    fs::write(
+        r.join("rig.json"),
+        "{\"image_size\": [640, 480],\n \"K1\": [[1,0,0]}",
+    )
+    .expect("write");
+    let e = process(&r);
+    assert!(e.contains("rig.json") && e.contains("line 2"), "{e}");
+
+    let r = copy("nan-rig");
+    let rig = fs::read_to_string(r.join("rig.json")).expect("rig");
+    fs::write(r.join("rig.json"), rig.replacen("363.0", "NaN", 1)).expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("rig.json") && e.contains("line"),
+        "NaN is not JSON: {e}"
+    );
+
+    let r = copy("singular-rig");
+    let mut file: serde_json::Value = serde_json::from_str(&rig).expect("json");
+    file["K2"][0][0] = serde_json::json!(0.0);
+    fs::write(r.join("rig.json"), file.to_string()).expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("rig.json") && e.contains("K2: focal lengths fx, fy must be positive"),
+        "{e}"
+    );
+
+    let r = copy("bad-frames");
+    fs::write(r.join("frames.csv"), "index,t_s\n0,0\n1,zero\n").expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("frames.csv line 3: t_s 'zero' is not a finite number"),
+        "{e}"
+    );
+
+    let r = copy("missing-image");
+    fs::remove_file(r.join("right").join("000002.png")).expect("rm");
+    let e = process(&r);
+    assert!(
+        e.contains("000002.png") && e.contains("No such file"),
+        "{e}"
+    );
+
+    let r = copy("wrong-size");
+    let small = mrptv::recording::encode_gray_png(&[0u8; 32 * 24], 32, 24).expect("png");
+    fs::write(r.join("left").join("000001.png"), small).expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("000001.png") && e.contains("image is 32x24, rig.json image_size is 640x480"),
+        "{e}"
+    );
+
+    let r = copy("not-png");
+    fs::write(r.join("left").join("000000.png"), b"GIF89a...").expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("000000.png") && e.contains("not a readable PNG"),
+        "{e}"
+    );
+
+    let r = copy("config-typo");
+    fs::write(r.join("mrptv.toml"), "[velocity]\nhalf_windw_frames = 3\n").expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("mrptv.toml") && e.contains("half_windw_frames"),
+        "{e}"
+    );
+
+    let e = fails(&[
+        "eval",
+        s(&rec.join("truth.csv")),
+        s(&rec.join("frames.csv")),
+    ]);
+    assert!(
+        e.contains("frames.csv line 1: header 'index,t_s' is not 'frame,t_s,track_id,x,y,z,u,v,w'"),
+        "{e}"
+    );
+
+    let e = fails(&["synth", "nope", s(&dir.path().join("x"))]);
+    assert!(e.contains("unknown scenario 'nope'"), "{e}");
+    let e = fails(&["synth", "flume", s(&rec)]);
+    assert!(e.contains("exists and is not empty"), "{e}");
+}
