@@ -504,34 +504,7 @@ mod tests {
     }
 
     fn hololens_like_rig() -> StereoRig {
-        let distortion = Distortion {
-            k1: -0.08,
-            k2: 0.02,
-            p1: 8e-4,
-            p2: -5e-4,
-            ..Default::default()
-        };
-        let left = CameraModel {
-            distortion,
-            ..CameraModel::pinhole(363.0, 318.0, 232.0)
-        };
-        let right = CameraModel {
-            fx: 364.5,
-            fy: 363.8,
-            cx: 321.0,
-            cy: 231.5,
-            skew: 0.0,
-            distortion,
-        };
-        let rot = UnitQuaternion::from_euler_angles(0.03, 0.01, std::f64::consts::PI);
-        let centre = Vector3::new(0.002, 0.099, 0.003);
-        StereoRig {
-            width: 640,
-            height: 480,
-            left,
-            right,
-            right_from_left: Isometry3::from_parts(Translation3::from(-(rot * centre)), rot),
-        }
+        crate::synth::hololens_raw_rig()
     }
 
     #[test]

@@ -235,13 +235,7 @@ pub fn run_in_memory(
         let started = Instant::now();
         let output = pipeline.push(&frame)?;
         totals.add(&output.stats, started.elapsed().as_secs_f64());
-        tracks.extend(output.vectors.iter().map(|v| TrackRow {
-            frame: v.frame_index,
-            t_s: v.t_s,
-            track_id: v.track_id,
-            position: v.position_in_world,
-            velocity: v.velocity_in_world,
-        }));
+        tracks.extend(output.vectors.iter().map(TrackRow::from));
         truth.extend(f.truth);
         progress(n + 1);
     }

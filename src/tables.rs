@@ -175,6 +175,18 @@ pub struct TrackRow {
     pub velocity: Vector3<f64>,
 }
 
+impl From<&VelocityVector> for TrackRow {
+    fn from(v: &VelocityVector) -> Self {
+        Self {
+            frame: v.frame_index,
+            t_s: v.t_s,
+            track_id: v.track_id,
+            position: v.position_in_world,
+            velocity: v.velocity_in_world,
+        }
+    }
+}
+
 pub fn read_tracks(path: &Path) -> Result<Vec<TrackRow>, TableError> {
     let (_, rows) = read_numeric(path, &[TRACKS_HEADER])?;
     rows.iter()

@@ -113,13 +113,7 @@ fn ignoring_the_head_pose_corrupts_world_velocities() {
             right: ImageView::new(w, h, &f.right).expect("sized"),
         };
         let out = pipeline.push(&frame).expect("valid frame");
-        tracks.extend(out.vectors.iter().map(|v| TrackRow {
-            frame: v.frame_index,
-            t_s: v.t_s,
-            track_id: v.track_id,
-            position: v.position_in_world,
-            velocity: v.velocity_in_world,
-        }));
+        tracks.extend(out.vectors.iter().map(TrackRow::from));
         truth.extend(f.truth);
     }
     let r = evaluate(

@@ -113,7 +113,9 @@ pub struct CostScale {
     pub half_height_px: f64,
 }
 
-fn mean(values: impl Iterator<Item = f64>) -> f64 {
+/// The mean that normalises a cost term (D_ave, B_ave, U_ave); 1 when there is nothing to average,
+/// so an empty frame never divides by zero.
+pub(crate) fn normalising_mean(values: impl Iterator<Item = f64>) -> f64 {
     let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
     if n == 0 || sum <= 0.0 {
         1.0
@@ -179,8 +181,8 @@ impl CameraLinker {
         scale: CostScale,
         config: &LinkConfig,
     ) -> Vec<LinkedFeature> {
-        let d_ave = mean(features.iter().map(|f| f.diameter_px));
-        let b_ave = mean(features.iter().map(|f| f.brightness));
+        let d_ave = normalising_mean(features.iter().map(|f| f.diameter_px));
+        let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
         let predictions: Vec<RectPoint> = (0..self.tracks.len())
             .map(|t| self.predict(t, config))
             .collect();

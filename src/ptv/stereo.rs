@@ -15,7 +15,9 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use super::link::{assign, Assignment, CostScale, Feature, LinkedFeature, SortedByX};
+use super::link::{
+    assign, normalising_mean, Assignment, CostScale, Feature, LinkedFeature, SortedByX,
+};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -57,15 +59,6 @@ impl Default for StereoConfig {
     }
 }
 
-fn mean_of(values: impl Iterator<Item = f64>) -> f64 {
-    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-    if n == 0 || sum <= 0.0 {
-        1.0
-    } else {
-        sum / n as f64
-    }
-}
-
 /// Effective costs of (left track, right track) pairs that were candidates in the previous frame.
 pub type PairHistory = BTreeMap<(u64, u64), f64>;
 
@@ -81,9 +74,9 @@ pub fn match_stereo(
     let max_disparity = config.disparity_range_fraction * 2.0 * scale.half_width_px;
     let band = config.epipolar_band_fraction * 2.0 * scale.half_height_px;
     let all = || left.iter().chain(right);
-    let d_ave = mean_of(all().map(|f| f.feature.diameter_px));
-    let b_ave = mean_of(all().map(|f| f.feature.brightness));
-    let u_ave = mean_of(all().filter_map(LinkedFeature::speed_px));
+    let d_ave = normalising_mean(all().map(|f| f.feature.diameter_px));
+    let b_ave = normalising_mean(all().map(|f| f.feature.brightness));
+    let u_ave = normalising_mean(all().filter_map(LinkedFeature::speed_px));
     let passes = |l: &Feature, r: &Feature| {
         let disparity = l.rect.x - r.rect.x;
         disparity > 0.0 && disparity < max_disparity && (l.rect.y - r.rect.y).abs() <= band
