@@ -86,6 +86,14 @@ pub struct Detection {
     pub from_overlap: bool,
 }
 
+/// A pixel of a region with its coordinates, so nothing downstream divides by the width.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Pixel {
+    index: u32,
+    x: u32,
+    y: u32,
+}
+
 /// Reusable buffers, so the hot path allocates nothing once warmed up.
 #[derive(Debug, Default)]
 pub struct Detector {
@@ -102,8 +110,8 @@ pub struct Detector {
     /// needs clearing (a pixel's stale label from an earlier image never equals a current one).
     labels: Vec<u32>,
     next_label: u32,
-    stack: Vec<u32>,
-    region: Vec<u32>,
+    stack: Vec<Pixel>,
+    region: Vec<Pixel>,
 }
 
 impl Detector {
@@ -320,14 +328,17 @@ impl Detector {
             let label = self.next_label;
             self.region.clear();
             self.stack.clear();
-            self.stack.push(start as u32);
+            self.stack.push(Pixel {
+                index: start as u32,
+                x: (start % w) as u32,
+                y: (start / w) as u32,
+            });
             self.mask[start] = 2;
             self.labels[start] = label;
             let mut touches_border = false;
-            while let Some(i) = self.stack.pop() {
-                let i = i as usize;
-                self.region.push(i as u32);
-                let (x, y) = (i % w, i / w);
+            while let Some(p) = self.stack.pop() {
+                self.region.push(p);
+                let (x, y) = (p.x as usize, p.y as usize);
                 touches_border |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
                 for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
                     for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
@@ -335,7 +346,11 @@ impl Detector {
                         if self.mask[j] == 1 {
                             self.mask[j] = 2;
                             self.labels[j] = label;
-                            self.stack.push(j as u32);
+                            self.stack.push(Pixel {
+                                index: j as u32,
+                                x: nx as u32,
+                                y: ny as u32,
+                            });
                         }
                     }
                 }
@@ -373,10 +388,9 @@ impl Detector {
         label: u32,
         out: &mut Vec<Detection>,
     ) {
-        let w = image.width;
         let region = &self.region;
-        let elongated = |p: &[u32]| {
-            config.max_axis_ratio > 0.0 && p.len() >= 12 && axis_ratio(p, w) > config.max_axis_ratio
+        let elongated = |p: &[Pixel]| {
+            config.max_axis_ratio > 0.0 && p.len() >= 12 && axis_ratio(p) > config.max_axis_ratio
         };
         if !elongated(region) {
             out.extend(self.measure(image, config, region));
@@ -409,24 +423,13 @@ impl Detector {
         &self,
         image: ImageView<'_>,
         config: &DetectConfig,
-        pixels: &[u32],
-    ) -> Vec<Vec<u32>> {
-        let w = image.width;
-        let at = |i: u32| ((i as usize % w) as f64, (i as usize / w) as f64);
-        let (mx, my) = pixels
-            .iter()
-            .fold((0.0, 0.0), |(x, y), &i| (x + at(i).0, y + at(i).1));
-        let (mx, my) = (mx / pixels.len() as f64, my / pixels.len() as f64);
+        pixels: &[Pixel],
+    ) -> Vec<Vec<Pixel>> {
         // Seed the two centres on the long axis, one standard deviation out.
-        let (mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0);
-        for &i in pixels {
-            let (dx, dy) = (at(i).0 - mx, at(i).1 - my);
-            xx += dx * dx;
-            yy += dy * dy;
-            xy += dx * dy;
-        }
-        let angle = 0.5 * (2.0 * xy).atan2(xx - yy);
-        let spread = ((xx + yy) / pixels.len() as f64).sqrt();
+        let m = Moments::of(pixels);
+        let (mx, my) = (m.mean_x, m.mean_y);
+        let angle = 0.5 * (2.0 * m.xy).atan2(m.xx - m.yy);
+        let spread = ((m.xx + m.yy) / pixels.len() as f64).sqrt();
         let (ux, uy) = (angle.cos() * spread, angle.sin() * spread);
         self.k_means(
             image,
@@ -442,18 +445,16 @@ impl Detector {
         &self,
         image: ImageView<'_>,
         config: &DetectConfig,
-        pixels: &[u32],
+        pixels: &[Pixel],
         mut centres: Vec<(f64, f64)>,
-    ) -> Vec<Vec<u32>> {
-        let w = image.width;
+    ) -> Vec<Vec<Pixel>> {
         let points: Vec<(f64, f64, f64)> = pixels
             .iter()
-            .map(|&i| {
-                let i = i as usize;
+            .map(|p| {
                 (
-                    (i % w) as f64,
-                    (i / w) as f64,
-                    self.weight(image, config, i).max(1e-9),
+                    p.x as f64,
+                    p.y as f64,
+                    self.weight(image, config, p.index as usize).max(1e-9),
                 )
             })
             .collect();
@@ -485,9 +486,9 @@ impl Detector {
                 break;
             }
         }
-        let mut parts: Vec<Vec<u32>> = vec![Vec::new(); centres.len()];
-        for (&i, &n) in pixels.iter().zip(&nearest) {
-            parts[n].push(i);
+        let mut parts: Vec<Vec<Pixel>> = vec![Vec::new(); centres.len()];
+        for (&p, &n) in pixels.iter().zip(&nearest) {
+            parts[n].push(p);
         }
         parts
     }
@@ -496,16 +497,14 @@ impl Detector {
         &self,
         image: ImageView<'_>,
         config: &DetectConfig,
-        pixels: &[u32],
+        pixels: &[Pixel],
     ) -> Option<Detection> {
-        let w = image.width;
         let (mut m00, mut m10, mut m01) = (0.0, 0.0, 0.0);
-        for &i in pixels {
-            let i = i as usize;
-            let v = self.weight(image, config, i);
+        for p in pixels {
+            let v = self.weight(image, config, p.index as usize);
             m00 += v;
-            m10 += v * (i % w) as f64;
-            m01 += v * (i / w) as f64;
+            m10 += v * p.x as f64;
+            m01 += v * p.y as f64;
         }
         if m00 <= 0.0 {
             return None;
@@ -530,19 +529,19 @@ impl Detector {
         image: ImageView<'_>,
         config: &DetectConfig,
         label: u32,
-    ) -> Option<Vec<Vec<u32>>> {
+    ) -> Option<Vec<Vec<Pixel>>> {
         let w = image.width;
         let h = image.height;
         let b = &self.blurred;
         let region = &self.region;
         let in_region = |j: usize| self.labels[j] == label;
         // Peak pixels: not lower than any 8-neighbour inside the region.
-        let mut peaks: Vec<usize> = Vec::new();
+        let mut peaks: Vec<Pixel> = Vec::new();
         let mut floor = u16::MAX;
-        for &i in region {
-            let i = i as usize;
+        for &p in region {
+            let i = p.index as usize;
             floor = floor.min(b[i]);
-            let (x, y) = (i % w, i / w);
+            let (x, y) = (p.x as usize, p.y as usize);
             let mut is_peak = true;
             'n: for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
                 for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
@@ -554,16 +553,17 @@ impl Detector {
                 }
             }
             if is_peak {
-                peaks.push(i);
+                peaks.push(p);
             }
         }
         // Keep the highest peak of every group whose members are joined without a real dip.
-        peaks.sort_by(|&a, &c| b[c].cmp(&b[a]).then(a.cmp(&c)));
-        let mut kept: Vec<usize> = Vec::new();
+        let at = |p: &Pixel| b[p.index as usize];
+        peaks.sort_by(|a, c| at(c).cmp(&at(a)).then(a.index.cmp(&c.index)));
+        let mut kept: Vec<Pixel> = Vec::new();
         for &p in &peaks {
-            let separate = kept.iter().all(|&k| {
-                let lower = (b[p].min(b[k]) - floor) as f64;
-                let dip = lowest_on_segment(b, w, p, k) - floor as f64;
+            let separate = kept.iter().all(|k| {
+                let lower = (at(&p).min(at(k)) - floor) as f64;
+                let dip = lowest_on_segment(b, w, &p, k) - floor as f64;
                 dip < (1.0 - config.split_dip_fraction) * lower
             });
             if separate {
@@ -573,10 +573,7 @@ impl Detector {
         if kept.len() < 2 {
             return None;
         }
-        let seeds = kept
-            .iter()
-            .map(|&k| ((k % w) as f64, (k / w) as f64))
-            .collect();
+        let seeds = kept.iter().map(|k| (k.x as f64, k.y as f64)).collect();
         Some(self.k_means(image, config, region, seeds))
     }
 }
@@ -596,23 +593,43 @@ fn next_unlabelled(mask: &[u8], from: usize) -> Option<usize> {
     None
 }
 
+/// Centroid and second central moments of a region's pixel positions (unweighted: its shape).
+struct Moments {
+    mean_x: f64,
+    mean_y: f64,
+    xx: f64,
+    yy: f64,
+    xy: f64,
+}
+
+impl Moments {
+    fn of(pixels: &[Pixel]) -> Self {
+        let n = pixels.len().max(1) as f64;
+        let (sx, sy) = pixels
+            .iter()
+            .fold((0.0, 0.0), |(x, y), p| (x + p.x as f64, y + p.y as f64));
+        let (mean_x, mean_y) = (sx / n, sy / n);
+        let (mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0);
+        for p in pixels {
+            let (dx, dy) = (p.x as f64 - mean_x, p.y as f64 - mean_y);
+            xx += dx * dx;
+            yy += dy * dy;
+            xy += dx * dy;
+        }
+        Self {
+            mean_x,
+            mean_y,
+            xx,
+            yy,
+            xy,
+        }
+    }
+}
+
 /// Long over short axis of a region's pixel distribution (from its second central moments).
-fn axis_ratio(pixels: &[u32], w: usize) -> f64 {
-    let n = pixels.len() as f64;
-    let (mut sx, mut sy) = (0.0, 0.0);
-    for &i in pixels {
-        sx += (i as usize % w) as f64;
-        sy += (i as usize / w) as f64;
-    }
-    let (mx, my) = (sx / n, sy / n);
-    let (mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0);
-    for &i in pixels {
-        let (dx, dy) = ((i as usize % w) as f64 - mx, (i as usize / w) as f64 - my);
-        xx += dx * dx;
-        yy += dy * dy;
-        xy += dx * dy;
-    }
-    let (mean, diff) = ((xx + yy) / 2.0, ((xx - yy) / 2.0).hypot(xy));
+fn axis_ratio(pixels: &[Pixel]) -> f64 {
+    let m = Moments::of(pixels);
+    let (mean, diff) = ((m.xx + m.yy) / 2.0, ((m.xx - m.yy) / 2.0).hypot(m.xy));
     let (major, minor) = (mean + diff, (mean - diff).max(1e-12));
     (major / minor).sqrt()
 }
@@ -624,9 +641,9 @@ fn kernel(sample: impl Fn(isize) -> u16) -> u16 {
     sample(-2) + 4 * sample(-1) + 6 * sample(0) + 4 * sample(1) + sample(2)
 }
 
-fn lowest_on_segment(b: &[u16], w: usize, from: usize, to: usize) -> f64 {
-    let (x0, y0) = ((from % w) as f64, (from / w) as f64);
-    let (x1, y1) = ((to % w) as f64, (to / w) as f64);
+fn lowest_on_segment(b: &[u16], w: usize, from: &Pixel, to: &Pixel) -> f64 {
+    let (x0, y0) = (from.x as f64, from.y as f64);
+    let (x1, y1) = (to.x as f64, to.y as f64);
     let steps = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
     (0..=steps)
         .map(|s| {
