@@ -7,39 +7,36 @@ use crate::ptv::{PipelineConfig, PipelineError};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Parse {
         path: PathBuf,
-        source: toml::de::Error,
+        error: toml::de::Error,
     },
-    #[error("{path}: {source}")]
-    Invalid {
-        path: PathBuf,
-        source: PipelineError,
-    },
+    #[error("{path}: {error}")]
+    Invalid { path: PathBuf, error: PipelineError },
 }
 
 pub fn parse(path: &Path, text: &str) -> Result<PipelineConfig, ConfigError> {
-    let config: PipelineConfig = toml::from_str(text).map_err(|source| ConfigError::Parse {
+    let config: PipelineConfig = toml::from_str(text).map_err(|error| ConfigError::Parse {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
-    config.validate().map_err(|source| ConfigError::Invalid {
+    config.validate().map_err(|error| ConfigError::Invalid {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     Ok(config)
 }
 
 pub fn load(path: &Path) -> Result<PipelineConfig, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+    let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     parse(path, &text)
 }

@@ -101,7 +101,7 @@ pub struct Report {
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum EvalError {
-    #[error("the tracks file has no rows: nothing to score")]
+    #[error("no velocity vectors to score (a centred estimate needs a particle seen through 2M+1 frames)")]
     NoTracks,
     #[error("no truth rows in frames {first}..={last} covered by the tracks")]
     NoTruth { first: u64, last: u64 },
@@ -155,9 +155,9 @@ pub fn evaluate(
     }
     let m = options.window_frames;
     let measurable = |t: &TruthRow| {
-        lifetimes
-            .get(&t.pid)
-            .is_some_and(|&(first, last)| t.frame >= first + m && t.frame + m <= last)
+        lifetimes.get(&t.pid).is_some_and(|&(first, last)| {
+            t.frame >= first.saturating_add(m) && t.frame.saturating_add(m) <= last
+        })
     };
     let measurable_rows = truth_by_frame
         .values()

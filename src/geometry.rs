@@ -271,14 +271,21 @@ pub fn rotation_from_matrix(
             "is a reflection (determinant -1), not a rotation",
         ));
     }
-    Ok(Rotation3::from_matrix(m))
+    // Already checked orthonormal: take it as it is, renormalised through a quaternion.
+    // (`Rotation3::from_matrix` iterates from the identity and lands on the identity for exact
+    // 180-degree turns such as diag(-1, 1, -1).)
+    let unit = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*m));
+    Ok(unit.to_rotation_matrix())
 }
 
 impl StereoRig {
     pub fn from_file(rig: &RigFile) -> Result<Self, CalibrationError> {
         let [width, height] = rig.image_size;
-        if width == 0 || height == 0 {
-            return Err(invalid("image_size", "width and height must be positive"));
+        if width < 2 || height < 2 {
+            return Err(invalid(
+                "image_size",
+                "width and height must be at least 2 pixels",
+            ));
         }
         let left = camera_from_file("K1", &rig.K1, "D1", &rig.D1)?;
         let right = camera_from_file("K2", &rig.K2, "D2", &rig.D2)?;
@@ -355,7 +362,14 @@ impl Rectification {
         let right_centre_in_left = -(left_from_right_rot * rig.right_from_left.translation.vector);
         let baseline_m = right_centre_in_left.norm();
         let x_axis = right_centre_in_left / baseline_m;
-        let mean_axis = Vector3::z() + left_from_right_rot * Vector3::z();
+        let right_axis = left_from_right_rot * Vector3::z();
+        if right_axis.z <= 0.0 {
+            return Err(invalid(
+                "R",
+                "the optical axes are 90 degrees or more apart: the cameras cannot share a view",
+            ));
+        }
+        let mean_axis = Vector3::z() + right_axis;
         let z_axis = mean_axis - x_axis * mean_axis.dot(&x_axis);
         if z_axis.norm() < 1e-3 {
             return Err(invalid(
@@ -539,6 +553,28 @@ mod tests {
                 < 1e-12
         );
         assert_eq!(back.left, rig.left);
+    }
+
+    #[test]
+    fn exact_half_turns_survive_and_opposed_cameras_are_refused() {
+        let half_turn = Matrix3::new(-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0);
+        let r = rotation_from_matrix("R", &half_turn).expect("a rotation");
+        assert!((r.matrix() - half_turn).abs().max() < 1e-12, "{r:?}");
+        let mut file = parallel_rig().to_file();
+        file.R = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]];
+        let e = StereoRig::from_file(&file).unwrap_err().to_string();
+        assert!(
+            e.contains("optical axes are 90 degrees or more apart"),
+            "{e}"
+        );
+        let yawed = [
+            -1.0, 0.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 2.0, 0.0, 0.0, 0.0, 1.0,
+        ];
+        let pose = isometry_from_row_major("pose", &yawed).expect("rigid");
+        assert_eq!(
+            isometry_to_row_major(&pose).map(|v| (v * 1e9).round() / 1e9),
+            yawed
+        );
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! itself lives in the library (`mrptv::offline`).
 
 use std::fs;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -10,7 +10,7 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use mrptv::eval::{evaluate, EvalOptions};
-use mrptv::offline::{self, ProcessSinks};
+use mrptv::offline::{self, ProcessSinks, Sink};
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::synth::{Scenario, ScenarioSpec};
@@ -195,8 +195,14 @@ fn run(cli: Cli) -> Result<()> {
                 &recording,
                 config,
                 ProcessSinks {
-                    tracks: &mut tracks,
-                    points: points_file.as_mut().map(|p| p as &mut dyn Write),
+                    tracks: Sink {
+                        path: &out,
+                        writer: &mut tracks,
+                    },
+                    points: match (points.as_deref(), points_file.as_mut()) {
+                        (Some(path), Some(file)) => Some(Sink { path, writer: file }),
+                        _ => None,
+                    },
                 },
                 |n| bar.set_position(n as u64),
             )
@@ -257,6 +263,9 @@ fn run(cli: Cli) -> Result<()> {
             } else {
                 spec.config.clone()
             };
+            if frames == 0 {
+                bail!("--frames must be at least 1");
+            }
             println!("scenario '{scenario}': {}", scenario.description());
             println!(
                 "{frames} frames, {particles} particles, seed {seed}, {} config",

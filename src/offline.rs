@@ -21,17 +21,17 @@ pub enum OfflineError {
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
     Eval(#[from] EvalError),
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }
 
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> OfflineError + '_ {
-    move |source| OfflineError::Io {
+    move |error| OfflineError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     }
 }
 
@@ -118,10 +118,16 @@ impl RunTotals {
     }
 }
 
+/// An output of `process_recording`, with the path its errors are reported against.
+pub struct Sink<'a> {
+    pub path: &'a Path,
+    pub writer: &'a mut dyn Write,
+}
+
 /// Where `process_recording` writes.
 pub struct ProcessSinks<'a> {
-    pub tracks: &'a mut dyn Write,
-    pub points: Option<&'a mut dyn Write>,
+    pub tracks: Sink<'a>,
+    pub points: Option<Sink<'a>>,
 }
 
 /// Runs a recording through the pipeline, writing `tracks.csv` and optionally `points.csv` rows
@@ -133,14 +139,17 @@ pub fn process_recording(
     mut progress: impl FnMut(usize),
 ) -> Result<RunTotals, OfflineError> {
     let mut pipeline = Pipeline::new(recording.rig.clone(), config)?;
-    let out_error = |source| OfflineError::Io {
-        path: PathBuf::from("output"),
-        source,
-    };
-    let ProcessSinks { tracks, mut points } = sinks;
-    writeln!(tracks, "{}", tables::TRACKS_HEADER).map_err(out_error)?;
+    let ProcessSinks {
+        tracks: Sink {
+            path: tracks_path,
+            writer: tracks,
+        },
+        mut points,
+    } = sinks;
+    let tracks_error = io_error(tracks_path);
+    writeln!(tracks, "{}", tables::TRACKS_HEADER).map_err(io_error(tracks_path))?;
     if let Some(p) = points.as_mut() {
-        writeln!(p, "{}", tables::POINTS_HEADER).map_err(out_error)?;
+        writeln!(p.writer, "{}", tables::POINTS_HEADER).map_err(io_error(p.path))?;
     }
     let (w, h) = (recording.rig.width as usize, recording.rig.height as usize);
     let mut totals = RunTotals::default();
@@ -173,21 +182,21 @@ pub fn process_recording(
             let output = pipeline.push(&frame)?;
             totals.add(&output.stats, started.elapsed().as_secs_f64());
             for v in &output.vectors {
-                tables::write_track_row(tracks, v).map_err(out_error)?;
+                tables::write_track_row(tracks, v).map_err(io_error(tracks_path))?;
             }
             if let Some(p) = points.as_mut() {
                 for m in &output.points {
-                    tables::write_point_row(p, output.frame_index, output.t_s, m)
-                        .map_err(out_error)?;
+                    tables::write_point_row(p.writer, output.frame_index, output.t_s, m)
+                        .map_err(io_error(p.path))?;
                 }
             }
             progress(totals.frames);
         }
         Ok::<(), OfflineError>(())
     })?;
-    tracks.flush().map_err(out_error)?;
+    tracks.flush().map_err(tracks_error)?;
     if let Some(p) = points.as_mut() {
-        p.flush().map_err(out_error)?;
+        p.writer.flush().map_err(io_error(p.path))?;
     }
     Ok(totals)
 }

@@ -20,20 +20,20 @@ use crate::tables::{self, TableError};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RecordingError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Json {
         path: PathBuf,
-        source: serde_json::Error,
+        error: serde_json::Error,
     },
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Calibration {
         path: PathBuf,
-        source: CalibrationError,
+        error: CalibrationError,
     },
     #[error(transparent)]
     Table(#[from] TableError),
@@ -42,9 +42,9 @@ pub enum RecordingError {
 }
 
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> RecordingError + '_ {
-    move |source| RecordingError::Io {
+    move |error| RecordingError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     }
 }
 
@@ -62,21 +62,21 @@ pub fn image_name(index: u64) -> String {
 
 pub fn read_rig(path: &Path) -> Result<StereoRig, RecordingError> {
     let text = fs::read_to_string(path).map_err(io_error(path))?;
-    let file: RigFile = serde_json::from_str(&text).map_err(|source| RecordingError::Json {
+    let file: RigFile = serde_json::from_str(&text).map_err(|error| RecordingError::Json {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
-    StereoRig::from_file(&file).map_err(|source| RecordingError::Calibration {
+    StereoRig::from_file(&file).map_err(|error| RecordingError::Calibration {
         path: path.to_path_buf(),
-        source,
+        error,
     })
 }
 
 pub fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
     let json =
-        serde_json::to_string_pretty(&rig.to_file()).map_err(|source| RecordingError::Json {
+        serde_json::to_string_pretty(&rig.to_file()).map_err(|error| RecordingError::Json {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
     fs::write(path, json + "\n").map_err(io_error(path))
 }
@@ -139,7 +139,15 @@ pub fn read_gray_png(path: &Path, width: u32, height: u32) -> Result<Vec<u8>, Re
 
 /// Decodes an 8-bit grayscale PNG of a known size from memory.
 pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
-    let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+    use image::ImageDecoder;
+    let decoder = image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
+        .map_err(|e| format!("not a readable PNG: {e}"))?;
+    // 1-, 2- and 4-bit grayscale would be expanded silently; the contract is 8-bit.
+    let original = decoder.original_color_type();
+    if original != image::ExtendedColorType::L8 {
+        return Err(format!("expected 8-bit grayscale, found {original:?}"));
+    }
+    let image = image::DynamicImage::from_decoder(decoder)
         .map_err(|e| format!("not a readable PNG: {e}"))?;
     let image::DynamicImage::ImageLuma8(gray) = image else {
         return Err(format!(
@@ -178,7 +186,7 @@ impl Recording {
         if !dir.is_dir() {
             return Err(RecordingError::Io {
                 path: dir.to_path_buf(),
-                source: std::io::Error::new(
+                error: std::io::Error::new(
                     std::io::ErrorKind::NotFound,
                     "not a recording directory",
                 ),

@@ -30,10 +30,10 @@ pub fn frames_header_with_pose() -> String {
 
 #[derive(Debug, thiserror::Error)]
 pub enum TableError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{path}: empty file, expected the header '{expected}'")]
     Empty { path: PathBuf, expected: String },
@@ -60,9 +60,9 @@ pub struct Row {
 
 /// Reads a numeric CSV whose header must equal one of `headers`; returns which one and the rows.
 pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
-    let io = |source| TableError::Io {
+    let io = |error| TableError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let file = std::fs::File::open(path).map_err(io)?;
     let mut lines = BufReader::new(file).lines();

@@ -29,9 +29,10 @@ pub enum CentroidWeight {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DetectConfig {
-    /// Side of the box whose mean is the local threshold base, pixels (method: 15).
+    /// Side of the box whose mean is the local threshold base, odd, pixels (method: 15; at most
+    /// 101).
     pub box_size_px: usize,
-    /// Contrast constant C, grey levels: a pixel is a particle if `blurred >= box_mean - C`
+    /// Contrast constant C, grey levels (-255..=255): a pixel is a particle if `blurred >= box_mean - C`
     /// (method eq. 1). Bright particles on a darker background need C < 0; the method leaves the
     /// value to the user, -6 keeps sensor noise of a few grey levels out.
     pub contrast_c: f64,

@@ -115,11 +115,16 @@ impl PipelineConfig {
                 return bad(field, "must be a finite number >= 0");
             }
         }
-        if !self.detect.contrast_c.is_finite() {
-            return bad("detect.contrast_c", "must be a finite number");
+        if !self.detect.contrast_c.is_finite() || self.detect.contrast_c.abs() > 255.0 {
+            return bad(
+                "detect.contrast_c",
+                "must be a number of grey levels in -255..=255",
+            );
         }
-        if self.detect.box_size_px < 3 || self.detect.box_size_px % 2 == 0 {
-            return bad("detect.box_size_px", "must be odd and >= 3");
+        // The summed-area tables are i32; 101 keeps every sum far inside that range.
+        let box_size = self.detect.box_size_px;
+        if !(3..=101).contains(&box_size) || box_size % 2 == 0 {
+            return bad("detect.box_size_px", "must be odd and in 3..=101");
         }
         if self.detect.min_area_px > self.detect.max_area_px {
             return bad("detect.min_area_px", "must not exceed detect.max_area_px");
@@ -431,7 +436,9 @@ impl Pipeline {
         // fit: their centroids are biased. The fit needs no sample at the centre itself, so a
         // particle hidden in an overlap at the centre frame still gets a vector from its
         // neighbours in time.
-        let clean = || track.samples.iter().filter(|s| s.clean);
+        // Only the +-M window: older samples linger when the track missed the newest frame.
+        let in_window = |s: &&Sample| s.seq.abs_diff(centre_seq) <= m;
+        let clean = || track.samples.iter().filter(in_window).filter(|s| s.clean);
         let centre = track.samples.iter().find(|s| s.seq == centre_seq)?;
         let before = clean().filter(|s| s.seq < centre_seq).count() as u64;
         let after = clean().filter(|s| s.seq > centre_seq).count() as u64;
@@ -563,7 +570,7 @@ mod tests {
             .expect("refused");
         assert_eq!(
             e.to_string(),
-            "config: detect.box_size_px: must be odd and >= 3"
+            "config: detect.box_size_px: must be odd and in 3..=101"
         );
         let mut config = PipelineConfig::default();
         config.velocity.max_missing_per_side = 5;
