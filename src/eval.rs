@@ -449,6 +449,19 @@ mod tests {
         // pid 2 lives in frames 0..=1 only: never measurable with M = 1.
         assert_eq!(windowed.measurable_rows, 1);
         assert!((windowed.measurable_yield - 1.0).abs() < 1e-12);
+        let huge = evaluate(
+            &truth,
+            &tracks,
+            &EvalOptions {
+                window_frames: u64::MAX,
+                ..Default::default()
+            },
+        )
+        .expect("scored");
+        assert_eq!(
+            huge.measurable_rows, 0,
+            "no particle lives through an endless window"
+        );
     }
 
     #[test]
