@@ -202,6 +202,11 @@ fn bad_inputs_get_clear_errors() {
         e.contains("000002.png") && e.contains("No such file"),
         "{e}"
     );
+    assert_eq!(
+        e.matches("No such file").count(),
+        1,
+        "each error printed once: {e}"
+    );
 
     let r = copy("wrong-size");
     let small = mrptv::recording::encode_gray_png(&[0u8; 32 * 24], 32, 24).expect("png");
