@@ -102,7 +102,9 @@ pub struct Detector {
     row_pass: Vec<u16>,
     /// Blurred image scaled by 256 (the binomial kernel's sum), kept unrounded.
     blurred: Vec<u16>,
-    integral: Vec<i32>,
+    column_sums: Vec<u32>,
+    /// Tiles that may hold foreground pixels.
+    candidate: Vec<bool>,
     tile_min: Vec<u16>,
     tile_max: Vec<u16>,
     /// 0 background, 1 foreground not yet labelled, 2 labelled.
@@ -161,12 +163,13 @@ impl Detector {
                     &src[3..n + 3],
                     &src[4..n + 4],
                 ];
-                for (i, d) in dst[2..w - 2].iter_mut().enumerate() {
-                    *d = taps[0][i] as u16
-                        + 4 * taps[1][i] as u16
-                        + 6 * taps[2][i] as u16
-                        + 4 * taps[3][i] as u16
-                        + taps[4][i] as u16;
+                for (((d, (a, b)), (c, e)), f) in dst[2..w - 2]
+                    .iter_mut()
+                    .zip(taps[0].iter().zip(taps[1]))
+                    .zip(taps[2].iter().zip(taps[3]))
+                    .zip(taps[4])
+                {
+                    *d = *a as u16 + 4 * *b as u16 + 6 * *c as u16 + 4 * *e as u16 + *f as u16;
                 }
             }
             for x in (0..w.min(2)).chain(w.saturating_sub(2).max(w.min(2))..w) {
@@ -219,8 +222,9 @@ impl Detector {
 
     /// Eq. 1 against the box mean (replicated borders). Most of an image is background that
     /// provably fails the test: the box mean is at least the smallest blurred value around the
-    /// pixel, so a pixel below `that minimum - C` cannot pass. Tiles are screened with that bound,
-    /// and only a surviving tile gets exact box sums, from a summed-area table of its surroundings.
+    /// pixel, so a pixel below `that minimum - C` cannot pass. Tiles are screened with that bound;
+    /// only surviving tiles get exact box sums, from running column sums (vertical) and a prefix
+    /// sum along each tile row (horizontal).
     fn threshold(&mut self, w: usize, h: usize, config: &DetectConfig) {
         let half = config.box_size_px.max(1) / 2;
         let area = ((2 * half + 1) * (2 * half + 1)) as i64;
@@ -232,8 +236,8 @@ impl Detector {
         let (tiles_x, tiles_y) = (w.div_ceil(TILE), h.div_ceil(TILE));
         // The box around any pixel of a tile lies within `reach` tiles of it.
         let reach = half.div_ceil(TILE).max(1);
-        let clamp_x = |x: isize| x.clamp(0, w as isize - 1) as usize;
-        let clamp_y = |y: isize| y.clamp(0, h as isize - 1) as usize;
+        self.candidate.clear();
+        self.candidate.resize(tiles_x * tiles_y, false);
         for ty in 0..tiles_y {
             for tx in 0..tiles_x {
                 let mut floor = u16::MAX;
@@ -242,54 +246,58 @@ impl Detector {
                         floor = floor.min(self.tile_min[ny * tiles_x + nx]);
                     }
                 }
-                if (self.tile_max[ty * tiles_x + tx] as i64) + c_scaled < floor as i64 {
+                self.candidate[ty * tiles_x + tx] =
+                    self.tile_max[ty * tiles_x + tx] as i64 + c_scaled >= floor as i64;
+            }
+        }
+        let row = |y: isize| y.clamp(0, h as isize - 1) as usize * w;
+        // Column sums over rows y-half..=y+half (replicated), for the current row y. Largest sum:
+        // 101 * 65280, far inside u32.
+        self.column_sums.clear();
+        self.column_sums.resize(w, 0);
+        for k in -(half as isize)..=half as isize {
+            let r = row(k);
+            for (s, &b) in self.column_sums.iter_mut().zip(&self.blurred[r..r + w]) {
+                *s += b as u32;
+            }
+        }
+        let clamp_x = |x: isize| x.clamp(0, w as isize - 1) as usize;
+        let mut prefix: Vec<i64> = Vec::with_capacity(TILE + 2 * half + 1);
+        for y in 0..h {
+            if y > 0 {
+                let (add, sub) = (
+                    row((y + half) as isize),
+                    row(y as isize - half as isize - 1),
+                );
+                for ((s, &a), &b) in self
+                    .column_sums
+                    .iter_mut()
+                    .zip(&self.blurred[add..add + w])
+                    .zip(&self.blurred[sub..sub + w])
+                {
+                    *s = *s + a as u32 - b as u32;
+                }
+            }
+            let ty = y / TILE;
+            for tx in 0..tiles_x {
+                if !self.candidate[ty * tiles_x + tx] {
                     continue;
                 }
-                // Summed-area table over the tile plus `half` on every side, borders replicated.
                 let (x0, x1) = (tx * TILE, ((tx + 1) * TILE).min(w));
-                let (y0, y1) = (ty * TILE, ((ty + 1) * TILE).min(h));
-                let (sw, sh) = (x1 - x0 + 2 * half, y1 - y0 + 2 * half);
-                let stride = sw + 1;
-                // Sums stay below 30 * 30 * 65280 for the default box: i32 suffices; every entry
-                // is written before it is read, so no clearing.
-                self.integral.resize(stride * (sh + 1), 0);
-                self.integral[..stride].fill(0);
                 let left = x0 as isize - half as isize;
-                let interior = left >= 0 && x1 + half <= w;
-                for j in 0..sh {
-                    let src_row = clamp_y(y0 as isize - half as isize + j as isize) * w;
-                    let (above, below) = self.integral.split_at_mut((j + 1) * stride);
-                    let above = &above[j * stride..];
-                    let below = &mut below[..stride];
-                    below[0] = 0;
-                    let mut running = 0i32;
-                    if interior {
-                        let start = src_row + left as usize;
-                        for (b, &v) in below[1..].iter_mut().zip(&self.blurred[start..start + sw]) {
-                            running += v as i32;
-                            *b = running;
-                        }
-                    } else {
-                        for (i, b) in below[1..].iter_mut().enumerate() {
-                            running += self.blurred[src_row + clamp_x(left + i as isize)] as i32;
-                            *b = running;
-                        }
-                    }
-                    for (b, &a) in below[1..].iter_mut().zip(&above[1..]) {
-                        *b += a;
-                    }
+                prefix.clear();
+                prefix.push(0);
+                let mut running = 0i64;
+                for k in 0..(x1 - x0 + 2 * half) {
+                    running += self.column_sums[clamp_x(left + k as isize)] as i64;
+                    prefix.push(running);
                 }
                 let side = 2 * half + 1;
-                for y in y0..y1 {
-                    let j = y - y0;
-                    for x in x0..x1 {
-                        let i = x - x0;
-                        let at = |ii: usize, jj: usize| self.integral[jj * stride + ii];
-                        let sum = (at(i + side, j + side) - at(i, j + side) - at(i + side, j)
-                            + at(i, j)) as i64;
-                        let b = self.blurred[y * w + x] as i64;
-                        self.mask[y * w + x] = (b * area + offset >= sum) as u8;
-                    }
+                let blurred = &self.blurred[y * w + x0..y * w + x1];
+                let mask = &mut self.mask[y * w + x0..y * w + x1];
+                for (i, (m, &b)) in mask.iter_mut().zip(blurred).enumerate() {
+                    let sum = prefix[i + side] - prefix[i];
+                    *m = (b as i64 * area + offset >= sum) as u8;
                 }
             }
         }
