@@ -102,7 +102,7 @@ pub struct Detector {
     row_pass: Vec<u16>,
     /// Blurred image scaled by 256 (the binomial kernel's sum), kept unrounded.
     blurred: Vec<u16>,
-    column_sums: Vec<u32>,
+    column_sums: Vec<i32>,
     /// Tiles that may hold foreground pixels.
     candidate: Vec<bool>,
     tile_min: Vec<u16>,
@@ -251,53 +251,65 @@ impl Detector {
             }
         }
         let row = |y: isize| y.clamp(0, h as isize - 1) as usize * w;
-        // Column sums over rows y-half..=y+half (replicated), for the current row y. Largest sum:
-        // 101 * 65280, far inside u32.
+        // Column sums over rows y-half..=y+half (replicated) for the current row y, padded by
+        // `half` replicated columns each side so a tile's window needs no clamping. With the box
+        // capped at 101 and |C| at 255 every sum and product below stays inside i32.
+        let area = area as i32;
+        let offset = offset as i32;
         self.column_sums.clear();
-        self.column_sums.resize(w, 0);
+        self.column_sums.resize(w + 2 * half, 0);
         for k in -(half as isize)..=half as isize {
             let r = row(k);
-            for (s, &b) in self.column_sums.iter_mut().zip(&self.blurred[r..r + w]) {
-                *s += b as u32;
+            for (s, &b) in self.column_sums[half..half + w]
+                .iter_mut()
+                .zip(&self.blurred[r..r + w])
+            {
+                *s += b as i32;
             }
         }
-        let clamp_x = |x: isize| x.clamp(0, w as isize - 1) as usize;
-        let mut prefix: Vec<i64> = Vec::with_capacity(TILE + 2 * half + 1);
+        let side = 2 * half + 1;
+        let mut prefix: Vec<i32> = vec![0; TILE + 2 * half + 1];
+        let mut sums: Vec<i32> = vec![0; TILE];
         for y in 0..h {
             if y > 0 {
                 let (add, sub) = (
                     row((y + half) as isize),
                     row(y as isize - half as isize - 1),
                 );
-                for ((s, &a), &b) in self
-                    .column_sums
+                for ((s, &a), &b) in self.column_sums[half..half + w]
                     .iter_mut()
                     .zip(&self.blurred[add..add + w])
                     .zip(&self.blurred[sub..sub + w])
                 {
-                    *s = *s + a as u32 - b as u32;
+                    *s += a as i32 - b as i32;
                 }
             }
+            let (first, last) = (self.column_sums[half], self.column_sums[half + w - 1]);
+            self.column_sums[..half].fill(first);
+            self.column_sums[half + w..].fill(last);
             let ty = y / TILE;
             for tx in 0..tiles_x {
                 if !self.candidate[ty * tiles_x + tx] {
                     continue;
                 }
                 let (x0, x1) = (tx * TILE, ((tx + 1) * TILE).min(w));
-                let left = x0 as isize - half as isize;
-                prefix.clear();
-                prefix.push(0);
-                let mut running = 0i64;
-                for k in 0..(x1 - x0 + 2 * half) {
-                    running += self.column_sums[clamp_x(left + k as isize)] as i64;
-                    prefix.push(running);
+                let n = x1 - x0;
+                // Padded column x0 is image column x0 - half.
+                let mut running = 0;
+                for (p, &c) in prefix[1..]
+                    .iter_mut()
+                    .zip(&self.column_sums[x0..x1 + 2 * half])
+                {
+                    running += c;
+                    *p = running;
                 }
-                let side = 2 * half + 1;
+                for (i, s) in sums[..n].iter_mut().enumerate() {
+                    *s = prefix[i + side] - prefix[i];
+                }
                 let blurred = &self.blurred[y * w + x0..y * w + x1];
                 let mask = &mut self.mask[y * w + x0..y * w + x1];
-                for (i, (m, &b)) in mask.iter_mut().zip(blurred).enumerate() {
-                    let sum = prefix[i + side] - prefix[i];
-                    *m = (b as i64 * area + offset >= sum) as u8;
+                for ((m, &b), &sum) in mask.iter_mut().zip(blurred).zip(&sums[..n]) {
+                    *m = (b as i32 * area + offset >= sum) as u8;
                 }
             }
         }
