@@ -508,13 +508,7 @@ mod tests {
     use proptest::prelude::*;
 
     fn parallel_rig() -> StereoRig {
-        StereoRig {
-            width: 640,
-            height: 480,
-            left: CameraModel::pinhole(500.0, 319.5, 239.5),
-            right: CameraModel::pinhole(500.0, 319.5, 239.5),
-            right_from_left: Isometry3::translation(-0.1, 0.0, 0.0),
-        }
+        crate::synth::parallel_rig(640, 480, 500.0, 0.1)
     }
 
     fn hololens_like_rig() -> StereoRig {

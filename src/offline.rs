@@ -7,8 +7,13 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::Instant;
 
+use nalgebra::Isometry3;
+
 use crate::eval::{evaluate, EvalError, EvalOptions, Report};
-use crate::ptv::{FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
+
+use crate::ptv::{
+    FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
+};
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
 use crate::synth::{ScenarioSpec, Synthesizer, TruthRow};
 use crate::tables::{self, TrackRow};
@@ -124,6 +129,38 @@ pub struct Sink<'a> {
     pub writer: &'a mut dyn Write,
 }
 
+/// Runs one frame given as rig-sized pixel buffers through the pipeline and adds it to the
+/// totals, timing only the pipeline itself.
+fn push_pixels(
+    pipeline: &mut Pipeline,
+    totals: &mut RunTotals,
+    index: u64,
+    t_s: f64,
+    world_from_rig: Option<Isometry3<f64>>,
+    left: &[u8],
+    right: &[u8],
+) -> Result<FrameOutput, OfflineError> {
+    let (w, h) = (
+        pipeline.rig().width as usize,
+        pipeline.rig().height as usize,
+    );
+    let (Some(left), Some(right)) = (ImageView::new(w, h, left), ImageView::new(w, h, right))
+    else {
+        unreachable!("callers pass images decoded or rendered at the rig's size");
+    };
+    let frame = StereoFrame {
+        index,
+        t_s,
+        world_from_rig,
+        left,
+        right,
+    };
+    let started = Instant::now();
+    let output = pipeline.push(&frame)?;
+    totals.add(&output.stats, started.elapsed().as_secs_f64());
+    Ok(output)
+}
+
 /// Where `process_recording` writes.
 pub struct ProcessSinks<'a> {
     pub tracks: Sink<'a>,
@@ -151,7 +188,6 @@ pub fn process_recording(
     if let Some(p) = points.as_mut() {
         writeln!(p.writer, "{}", tables::POINTS_HEADER).map_err(io_error(p.path))?;
     }
-    let (w, h) = (recording.rig.width as usize, recording.rig.height as usize);
     let mut totals = RunTotals::default();
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::sync_channel(2);
@@ -166,21 +202,15 @@ pub fn process_recording(
         });
         for loaded in rx {
             let (entry, (left, right)) = loaded?;
-            let (Some(left), Some(right)) =
-                (ImageView::new(w, h, &left), ImageView::new(w, h, &right))
-            else {
-                unreachable!("decode_gray_png checked the size");
-            };
-            let frame = StereoFrame {
-                index: entry.index,
-                t_s: entry.t_s,
-                world_from_rig: entry.world_from_rig,
-                left,
-                right,
-            };
-            let started = Instant::now();
-            let output = pipeline.push(&frame)?;
-            totals.add(&output.stats, started.elapsed().as_secs_f64());
+            let output = push_pixels(
+                &mut pipeline,
+                &mut totals,
+                entry.index,
+                entry.t_s,
+                entry.world_from_rig,
+                &left,
+                &right,
+            )?;
             for v in &output.vectors {
                 tables::write_track_row(tracks, v).map_err(io_error(tracks_path))?;
             }
@@ -219,31 +249,22 @@ pub fn run_in_memory(
     eval: &EvalOptions,
     mut progress: impl FnMut(usize),
 ) -> Result<InMemoryRun, OfflineError> {
-    let rig = spec.rig.clone();
-    let (w, h) = (rig.width as usize, rig.height as usize);
-    let mut pipeline = Pipeline::new(rig, config)?;
+    let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut truth = Vec::new();
     let mut tracks = Vec::new();
     let mut totals = RunTotals::default();
     for n in 0..frames {
         let f = synth.next_frame();
-        let (Some(left), Some(right)) = (
-            ImageView::new(w, h, &f.left),
-            ImageView::new(w, h, &f.right),
-        ) else {
-            unreachable!("the synthesizer renders rig-sized images");
-        };
-        let frame = StereoFrame {
-            index: f.index,
-            t_s: f.t_s,
-            world_from_rig: f.world_from_rig,
-            left,
-            right,
-        };
-        let started = Instant::now();
-        let output = pipeline.push(&frame)?;
-        totals.add(&output.stats, started.elapsed().as_secs_f64());
+        let output = push_pixels(
+            &mut pipeline,
+            &mut totals,
+            f.index,
+            f.t_s,
+            f.world_from_rig,
+            &f.left,
+            &f.right,
+        )?;
         tracks.extend(output.vectors.iter().map(TrackRow::from));
         truth.extend(f.truth);
         progress(n + 1);

@@ -252,10 +252,6 @@ impl RecordingWriter {
         })
     }
 
-    pub fn dir(&self) -> &Path {
-        &self.dir
-    }
-
     pub fn write_frame(
         &mut self,
         entry: &FrameEntry,

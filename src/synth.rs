@@ -275,7 +275,8 @@ pub struct ScenarioSpec {
     pub config: PipelineConfig,
 }
 
-fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
+/// Two identical pinholes, principal point at the image centre, baseline along x.
+pub(crate) fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
     let camera = CameraModel::pinhole(
         f_px,
         (width as f64 - 1.0) / 2.0,
@@ -510,10 +511,6 @@ impl Synthesizer {
         synth
     }
 
-    pub fn spec(&self) -> &ScenarioSpec {
-        &self.spec
-    }
-
     fn new_particle(&mut self, position: Point3<f64>) -> Particle {
         self.next_pid += 1;
         let spec = &self.spec;
@@ -664,8 +661,7 @@ fn render_particle(
             }
         }
     }
-    let inside = |q: f64, n: usize| q >= -0.5 && q < n as f64 - 0.5;
-    inside(centre.x, w) && inside(centre.y, h)
+    spec.rig.contains(centre)
 }
 
 fn finish_image(spec: &ScenarioSpec, signal: &[f32], noise: &mut Rng) -> Vec<u8> {
