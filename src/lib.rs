@@ -23,11 +23,14 @@
 //!
 //! Everything runs on the caller's thread; the offline reader decodes PNGs on one helper thread.
 
+pub mod client;
 pub mod config;
 pub mod eval;
 pub mod geometry;
 pub mod offline;
+pub mod protocol;
 pub mod ptv;
 pub mod recording;
+pub mod server;
 pub mod synth;
 pub mod tables;

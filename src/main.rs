@@ -3,16 +3,20 @@
 
 use std::fs;
 use std::io::BufWriter;
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use mrptv::client::{self, Rate, RecordingSource, ReplayOptions, ReplayReport, SyntheticSource};
 use mrptv::eval::{evaluate, EvalOptions};
 use mrptv::offline::{self, ProcessSinks, Sink};
+use mrptv::protocol::{Convention, Encoding};
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
+use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tables;
 
@@ -101,6 +105,67 @@ enum Command {
         /// Use the published method's choices instead of mrptv's defaults.
         #[arg(long)]
         method: bool,
+    },
+    /// Run the live host service: headsets stream stereo frames over WebSocket, 3D vectors stream back.
+    #[command(
+        after_help = "Protocol: protocol/README.md. Logs: RUST_LOG=debug (per-frame: trace)."
+    )]
+    Serve {
+        /// Address to listen on.
+        #[arg(long, default_value = "127.0.0.1:8770")]
+        bind: SocketAddr,
+        /// Also run a built-in synthetic headset, looping, so vectors flow without hardware.
+        #[arg(long)]
+        demo: bool,
+        /// Scenario the demo headset streams.
+        #[arg(long, default_value = "flume")]
+        demo_scenario: Scenario,
+        /// Record every session's incoming frames as a recording directory under DIR.
+        #[arg(long, value_name = "DIR")]
+        record: Option<PathBuf>,
+        /// TOML config for sessions whose hello brings none [default: built-in defaults].
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Use the published method's choices as the sessions' default config.
+        #[arg(long)]
+        method: bool,
+        /// Frames a session may queue before the oldest is dropped.
+        #[arg(long, default_value_t = ServerOptions::default().queue_frames)]
+        queue_frames: usize,
+    },
+    /// Stream a recording to a server as a headset would; save the vectors; report latency and drops.
+    Replay {
+        /// Recording directory (rig.json, frames.csv, left/, right/).
+        rec: PathBuf,
+        #[arg(long, default_value = "ws://127.0.0.1:8770/v1/ingest")]
+        url: String,
+        /// "recorded" (the recording's timestamps), "max", or frames per second.
+        #[arg(long, default_value = "recorded")]
+        rate: Rate,
+        /// With --rate max: frames sent but not yet answered, at most.
+        #[arg(long, default_value_t = 2)]
+        in_flight: usize,
+        /// Image encoding on the wire: raw8 or png (the recording's files, sent as they are).
+        #[arg(long, default_value = "raw8")]
+        encoding: Encoding,
+        /// Coordinate convention of the vectors received: opencv, unity or webxr.
+        #[arg(long, default_value = "opencv")]
+        convention: Convention,
+        /// Write the refined (centred) vectors received: frame,t_s,track_id,x,y,z,u,v,w.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the causal vectors received, same columns.
+        #[arg(long)]
+        causal_out: Option<PathBuf>,
+        /// TOML config to ask for [default: REC/mrptv.toml if present, else the server's].
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Run this many headsets at once, each streaming the recording on its own connection.
+        #[arg(long, default_value_t = 1)]
+        headsets: usize,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Print the default processing config as TOML (every key, with mrptv's defaults).
     Config {
@@ -288,6 +353,81 @@ fn run(cli: Cli) -> Result<()> {
             );
             print!("{}", run.report);
         }
+        Command::Serve {
+            bind,
+            demo,
+            demo_scenario,
+            record,
+            config,
+            method,
+            queue_frames,
+        } => {
+            let config = match config {
+                Some(path) => mrptv::config::load(&path)?,
+                None => PipelineConfig::default(),
+            };
+            let options = ServerOptions {
+                config: if method {
+                    method_config(&config)
+                } else {
+                    config
+                },
+                queue_frames,
+                record_dir: record,
+                ..Default::default()
+            };
+            init_logging("info");
+            runtime()?.block_on(serve(bind, options, demo.then_some(demo_scenario)))?;
+        }
+        Command::Replay {
+            rec,
+            url,
+            rate,
+            in_flight,
+            encoding,
+            convention,
+            out,
+            causal_out,
+            config,
+            headsets,
+            json,
+        } => {
+            init_logging("warn");
+            let recording = Recording::open(&rec)?;
+            let suggested = rec.join("mrptv.toml");
+            let config = match config {
+                Some(path) => Some(mrptv::config::load(&path)?),
+                None if suggested.is_file() => Some(mrptv::config::load(&suggested)?),
+                None => None,
+            };
+            if headsets == 0 {
+                bail!("--headsets must be at least 1");
+            }
+            let options = ReplayOptions {
+                rate,
+                max_in_flight: in_flight,
+                encoding,
+                convention,
+                config,
+                keep_batches: out.is_some() || causal_out.is_some(),
+                ..ReplayOptions::new(url)
+            };
+            let reports = runtime()?.block_on(replay(&recording, &options, headsets))?;
+            for (path, kind) in [(&out, "refined"), (&causal_out, "causal")] {
+                if let Some(path) = path {
+                    let mut file = create_output(path)?;
+                    let batches = if kind == "refined" {
+                        &reports[0].refined
+                    } else {
+                        &reports[0].causal
+                    };
+                    client::write_batches_csv(&mut file, batches)
+                        .and_then(|()| std::io::Write::flush(&mut file))
+                        .with_context(|| format!("writing {}", path.display()))?;
+                }
+            }
+            print_replay(&reports, json)?;
+        }
         Command::Config { method } => {
             let config = if method {
                 PipelineConfig::method()
@@ -295,6 +435,191 @@ fn run(cli: Cli) -> Result<()> {
                 PipelineConfig::default()
             };
             print!("{}", mrptv::config::to_toml(&config));
+        }
+    }
+    Ok(())
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
+}
+
+/// Logs to stderr; RUST_LOG overrides `default` (e.g. RUST_LOG=mrptv=trace for per-frame logs).
+fn init_logging(default: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+async fn termination() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {}
+        _ = term => {}
+    }
+}
+
+async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>) -> Result<()> {
+    let listener = tokio::net::TcpListener::bind(bind)
+        .await
+        .with_context(|| format!("cannot listen on {bind}"))?;
+    let addr = listener.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|stop| *stop).await;
+    };
+    println!(
+        "mrptv {} listening on http://{addr}",
+        env!("CARGO_PKG_VERSION")
+    );
+    println!("  headsets: ws://{addr}/v1/ingest");
+    println!("  viewers:  ws://{addr}/v1/watch");
+    println!("  sessions: http://{addr}/v1/sessions   health: http://{addr}/healthz");
+    if let Some(dir) = &options.record_dir {
+        println!("  recording every session under {}", dir.display());
+    }
+    let demo_task = demo.map(|scenario| {
+        let spec = ScenarioSpec::new(scenario);
+        println!(
+            "  demo: a synthetic headset streams '{scenario}' at {:.0} Hz, looping ({})",
+            1.0 / spec.frame_interval_s,
+            scenario.description()
+        );
+        let options = ReplayOptions {
+            client_name: format!("mrptv demo ({scenario})"),
+            config: Some(spec.config.clone()),
+            keep_batches: false,
+            ..ReplayOptions::new(format!("ws://{addr}/v1/ingest"))
+        };
+        let stop = stop_rx.clone();
+        tokio::spawn(async move {
+            let source = SyntheticSource::new(spec, 1, None, Encoding::Raw8);
+            match client::replay(source, &options, stopped(stop), |_| {}).await {
+                Ok(r) => tracing::info!(frames = r.frames_sent, "demo headset stopped"),
+                Err(e) => tracing::error!("demo headset: {e}"),
+            }
+        })
+    });
+    println!("Ctrl-C to stop.");
+    let server = tokio::spawn(server::run(listener, options, stopped(stop_rx)));
+    termination().await;
+    let _ = stop_tx.send(true);
+    server.await.context("server task")??;
+    if let Some(task) = demo_task {
+        let _ = task.await;
+    }
+    println!("stopped: every session closed");
+    Ok(())
+}
+
+async fn replay(
+    recording: &Recording,
+    options: &ReplayOptions,
+    headsets: usize,
+) -> Result<Vec<ReplayReport>> {
+    let bar = progress_bar(recording.frames.len() * headsets, "replay");
+    let runs = (0..headsets).map(|_| {
+        let source = RecordingSource::new(recording.clone(), options.encoding);
+        let bar = bar.clone();
+        client::replay(source, options, termination(), move |_| bar.inc(1))
+    });
+    let reports = futures_util::future::join_all(runs).await;
+    bar.finish_and_clear();
+    reports
+        .into_iter()
+        .map(|r| r.with_context(|| format!("replaying to {}", options.url)))
+        .collect()
+}
+
+fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
+    let all = ReplayReport {
+        latencies_s: reports.iter().flat_map(|r| r.latencies_s.clone()).collect(),
+        ..Default::default()
+    };
+    let ms = |p: f64| all.latency_percentile_s(p).map(|s| s * 1e3);
+    let sum = |f: &dyn Fn(&ReplayReport) -> u64| reports.iter().map(f).sum::<u64>();
+    let counter = |f: &dyn Fn(&mrptv::protocol::Counters) -> u64| {
+        reports
+            .iter()
+            .map(|r| r.counters.as_ref().map_or(0, f))
+            .sum::<u64>()
+    };
+    let elapsed_s = reports.iter().map(|r| r.elapsed_s).fold(0.0, f64::max);
+    let summary = serde_json::json!({
+        "headsets": reports.len(),
+        "sessions": reports.iter().map(|r| r.session.clone()).collect::<Vec<_>>(),
+        "frames_sent": sum(&|r| r.frames_sent),
+        "frames_processed": counter(&|c| c.frames_processed),
+        "frames_dropped": counter(&|c| c.frames_dropped),
+        "frames_rejected": counter(&|c| c.frames_rejected),
+        "batches_dropped": counter(&|c| c.batches_dropped),
+        "causal_vectors": sum(&|r| r.causal_vectors),
+        "refined_vectors": sum(&|r| r.refined_vectors),
+        "errors": reports.iter().map(|r| r.errors.len()).sum::<usize>(),
+        "elapsed_s": elapsed_s,
+        "frames_per_s": sum(&|r| r.frames_sent) as f64 / elapsed_s.max(1e-9),
+        "latency_ms": {"p50": ms(50.0), "p90": ms(90.0), "p99": ms(99.0), "max": ms(100.0), "samples": all.latencies_s.len()},
+        "mean_processing_ms": reports.iter().filter_map(|r| r.counters.map(|c| c.processing_ms_mean)).sum::<f64>() / reports.len() as f64,
+    });
+    if json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+        return Ok(());
+    }
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1} ms"));
+    println!(
+        "{} headset(s), sessions {}: {} frames sent in {:.1} s ({:.1} frames/s)",
+        reports.len(),
+        summary["sessions"],
+        summary["frames_sent"],
+        elapsed_s,
+        summary["frames_per_s"].as_f64().unwrap_or(0.0)
+    );
+    println!(
+        "server: {} processed, {} dropped (queue full), {} rejected, {} batches undelivered; pipeline {:.2} ms/frame mean",
+        summary["frames_processed"],
+        summary["frames_dropped"],
+        summary["frames_rejected"],
+        summary["batches_dropped"],
+        summary["mean_processing_ms"].as_f64().unwrap_or(0.0)
+    );
+    println!(
+        "vectors received: {} causal, {} refined",
+        summary["causal_vectors"], summary["refined_vectors"]
+    );
+    println!(
+        "latency, frame sent -> causal vectors received ({} frames): p50 {}, p90 {}, p99 {}, max {}",
+        all.latencies_s.len(),
+        f(ms(50.0)),
+        f(ms(90.0)),
+        f(ms(99.0)),
+        f(ms(100.0))
+    );
+    for r in reports {
+        for (code, message) in r.errors.iter().take(5) {
+            println!("  {}: server error {code:?}: {message}", r.session);
         }
     }
     Ok(())

@@ -235,7 +235,10 @@ pub fn process_recording(
 #[derive(Debug, Clone)]
 pub struct InMemoryRun {
     pub truth: Vec<TruthRow>,
+    /// Centred (refined) vectors: the measurement.
     pub tracks: Vec<TrackRow>,
+    /// Causal vectors, as the live server sends them first.
+    pub causal_tracks: Vec<TrackRow>,
     pub totals: RunTotals,
     pub report: Report,
 }
@@ -253,6 +256,7 @@ pub fn run_in_memory(
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut truth = Vec::new();
     let mut tracks = Vec::new();
+    let mut causal_tracks = Vec::new();
     let mut totals = RunTotals::default();
     for n in 0..frames {
         let f = synth.next_frame();
@@ -266,6 +270,7 @@ pub fn run_in_memory(
             &f.right,
         )?;
         tracks.extend(output.vectors.iter().map(TrackRow::from));
+        causal_tracks.extend(output.causal_vectors.iter().map(TrackRow::from));
         truth.extend(f.truth);
         progress(n + 1);
     }
@@ -273,6 +278,7 @@ pub fn run_in_memory(
     Ok(InMemoryRun {
         truth,
         tracks,
+        causal_tracks,
         totals,
         report,
     })

@@ -202,12 +202,27 @@ pub struct FrameStats {
     pub matches: usize,
     pub tracks: usize,
     pub vectors: usize,
-    /// Vectors dropped by the smoothness check.
+    pub causal_vectors: usize,
+    /// Centred vectors dropped by the smoothness check.
     pub rejected: usize,
 }
 
-/// What one frame produced. `vectors` are for the frame `M` frames back: the centred window
-/// needs `M` frames after the one it describes.
+/// A frame as the pipeline saw it: its index and sensor time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameRef {
+    pub index: u64,
+    pub t_s: f64,
+}
+
+/// What one frame produced.
+///
+/// Two velocity estimates, for two uses:
+/// - `causal_vectors` describe *this* frame: a quadratic fitted to the track's last `2M + 1`
+///   frames at most, evaluated at the newest one. No latency, but an end-point derivative, so
+///   noisier than the centred one; for live display.
+/// - `vectors` are the method's centred estimates for the frame `M` frames back
+///   (`centred_frame`): the window needs `M` frames after the one it describes. These are the
+///   measurement (`tracks.csv`).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct FrameOutput {
     pub frame_index: u64,
@@ -215,6 +230,9 @@ pub struct FrameOutput {
     pub detections_left: Vec<Detection>,
     pub detections_right: Vec<Detection>,
     pub points: Vec<MatchedPoint>,
+    pub causal_vectors: Vec<VelocityVector>,
+    /// The frame `vectors` describe; `None` until `M` frames have followed the first one.
+    pub centred_frame: Option<FrameRef>,
     pub vectors: Vec<VelocityVector>,
     pub stats: FrameStats,
 }
@@ -253,6 +271,8 @@ pub struct Pipeline {
     previous_t_s: Option<f64>,
     /// Frames pushed so far.
     seq: u64,
+    /// The last `M + 1` frames pushed, newest at the back.
+    recent_frames: VecDeque<FrameRef>,
 }
 
 impl Pipeline {
@@ -272,6 +292,7 @@ impl Pipeline {
             next_track_id: 0,
             previous_t_s: None,
             seq: 0,
+            recent_frames: VecDeque::new(),
         })
     }
 
@@ -322,6 +343,14 @@ impl Pipeline {
         self.previous_t_s = Some(frame.t_s);
         self.seq += 1;
         let seq = self.seq;
+        let m = self.config.velocity.half_window_frames;
+        self.recent_frames.push_back(FrameRef {
+            index: frame.index,
+            t_s: frame.t_s,
+        });
+        if self.recent_frames.len() > m + 1 {
+            self.recent_frames.pop_front();
+        }
 
         let mut out = FrameOutput {
             frame_index: frame.index,
@@ -417,13 +446,63 @@ impl Pipeline {
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
             }
+            if let Some(v) = self.causal_vector(track, seq) {
+                out.causal_vectors.push(v);
+            }
         }
+        out.centred_frame = (self.recent_frames.len() == m + 1)
+            .then(|| self.recent_frames.front().copied())
+            .flatten();
         out.stats.detections_left = out.detections_left.len();
         out.stats.detections_right = out.detections_right.len();
         out.stats.matches = out.points.len();
         out.stats.tracks = self.tracks.len();
         out.stats.vectors = out.vectors.len();
+        out.stats.causal_vectors = out.causal_vectors.len();
         Ok(out)
+    }
+
+    /// Fit residual above which a track is judged rough, for a sample at `depth_m`; `None` when
+    /// the check is off.
+    fn max_residual_m(&self, depth_m: f64) -> Option<f64> {
+        let v = &self.config.velocity;
+        (v.max_residual_ratio > 0.0).then(|| {
+            v.max_residual_ratio
+                * self
+                    .rectification
+                    .depth_sigma_m(depth_m, v.disparity_sigma_px)
+                + v.residual_floor_m
+        })
+    }
+
+    /// The causal estimate for the newest frame: the track must be seen in it, and at least three
+    /// clean samples of the last `2M + 1` frames (at least the last three frames when `M` is 1)
+    /// must support a quadratic. Rough tracks get no causal vector (they are not counted as
+    /// rejected: their centred check comes later).
+    fn causal_vector(&self, track: &Track3d, seq: u64) -> Option<VelocityVector> {
+        let newest = track.samples.back().filter(|s| s.seq == seq)?;
+        let span = (2 * self.config.velocity.half_window_frames as u64).max(2);
+        let points: Vec<(f64, Point3<f64>)> = track
+            .samples
+            .iter()
+            .filter(|s| s.clean && seq - s.seq <= span)
+            .map(|s| (s.t_s, s.point_in_world))
+            .collect();
+        let fit = fit_quadratic(&points, newest.t_s)?;
+        if self
+            .max_residual_m(newest.depth_m)
+            .is_some_and(|max| fit.rms_residual > max)
+        {
+            return None;
+        }
+        Some(VelocityVector {
+            frame_index: newest.frame_index,
+            t_s: newest.t_s,
+            track_id: track.id,
+            position_in_world: fit.position,
+            velocity_in_world: fit.velocity,
+            rms_residual_m: fit.rms_residual,
+        })
     }
 
     /// The centred estimate for the frame `M` frames back, if the track's window supports one;
@@ -450,14 +529,11 @@ impl Pipeline {
         }
         let points: Vec<(f64, Point3<f64>)> = clean().map(|s| (s.t_s, s.point_in_world)).collect();
         let fit = fit_quadratic(&points, centre.t_s)?;
-        let v = &self.config.velocity;
-        if v.max_residual_ratio > 0.0 {
-            let expected = self
-                .rectification
-                .depth_sigma_m(centre.depth_m, v.disparity_sigma_px);
-            if fit.rms_residual > v.max_residual_ratio * expected + v.residual_floor_m {
-                return Some(Err(()));
-            }
+        if self
+            .max_residual_m(centre.depth_m)
+            .is_some_and(|max| fit.rms_residual > max)
+        {
+            return Some(Err(()));
         }
         Some(Ok(VelocityVector {
             frame_index: centre.frame_index,
@@ -594,6 +670,15 @@ mod tests {
                 "centre lags by M"
             );
             assert_eq!(out.stats.vectors, out.vectors.len());
+            let expected_centre = f.index.checked_sub(m);
+            assert_eq!(out.centred_frame.map(|c| c.index), expected_centre);
+            assert!(
+                out.causal_vectors.iter().all(|v| v.frame_index == f.index),
+                "causal vectors describe the newest frame"
+            );
+            if f.index >= 4 {
+                assert!(!out.causal_vectors.is_empty(), "frame {}", f.index);
+            }
         }
     }
 }

@@ -1,0 +1,579 @@
+//! The reference headset client: `mrptv replay` streams a recording to a server, and
+//! `mrptv serve --demo` streams an endless synthetic scene through the same code.
+//!
+//! Frames come from a [`FrameSource`] read on its own thread (PNG reading is blocking work);
+//! a reader task timestamps every incoming message on arrival, so latency is measured from
+//! "frame handed to the socket" to "causal batch off the socket".
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::io::Write;
+use std::time::{Duration, Instant};
+
+use futures_util::{SinkExt, StreamExt};
+use nalgebra::Isometry3;
+use tokio::sync::mpsc;
+use tokio_tungstenite::tungstenite::Message;
+
+use crate::geometry::StereoRig;
+use crate::protocol::{
+    decode_batch, encode_frame, BatchKind, Convention, Counters, DecodedBatch, Encoding, ErrorCode,
+    FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage, PROTOCOL_VERSION,
+};
+use crate::ptv::PipelineConfig;
+use crate::recording::{encode_gray_png, read_gray_png, Recording, RecordingError};
+use crate::synth::{ScenarioSpec, Synthesizer};
+use crate::tables;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error("cannot connect to {url}: {error}")]
+    Connect {
+        url: String,
+        error: tokio_tungstenite::tungstenite::Error,
+    },
+    #[error("connection: {0}")]
+    Socket(#[from] tokio_tungstenite::tungstenite::Error),
+    #[error("the server refused the session ({code:?}): {message}")]
+    Refused { code: ErrorCode, message: String },
+    #[error("protocol: {0}")]
+    Protocol(String),
+    #[error(transparent)]
+    Source(#[from] RecordingError),
+    #[error("{0}")]
+    Image(String),
+}
+
+/// One frame ready to send: images already in the session's encoding.
+#[derive(Debug, Clone)]
+pub struct SourceFrame {
+    pub index: u64,
+    pub t_s: f64,
+    /// OpenCV convention (as in `frames.csv`).
+    pub world_from_rig: Option<Isometry3<f64>>,
+    pub left: Vec<u8>,
+    pub right: Vec<u8>,
+}
+
+pub trait FrameSource: Send + 'static {
+    fn rig(&self) -> &StereoRig;
+    /// `None` at the end.
+    fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>>;
+    /// Frames in all, when known.
+    fn frame_count(&self) -> Option<usize>;
+}
+
+/// A recording directory, frame by frame. PNG files are sent as they are for `Encoding::Png`.
+pub struct RecordingSource {
+    recording: Recording,
+    next: usize,
+    encoding: Encoding,
+}
+
+impl RecordingSource {
+    pub fn new(recording: Recording, encoding: Encoding) -> Self {
+        Self {
+            recording,
+            next: 0,
+            encoding,
+        }
+    }
+}
+
+impl FrameSource for RecordingSource {
+    fn rig(&self) -> &StereoRig {
+        &self.recording.rig
+    }
+
+    fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>> {
+        let entry = *self.recording.frames.get(self.next)?;
+        self.next += 1;
+        let (w, h) = (self.recording.rig.width, self.recording.rig.height);
+        let read = |path: std::path::PathBuf| -> Result<Vec<u8>, ClientError> {
+            match self.encoding {
+                Encoding::Raw8 => Ok(read_gray_png(&path, w, h)?),
+                Encoding::Png => std::fs::read(&path).map_err(|error| {
+                    ClientError::Source(RecordingError::Io {
+                        path: path.clone(),
+                        error,
+                    })
+                }),
+            }
+        };
+        Some((|| {
+            Ok(SourceFrame {
+                index: entry.index,
+                t_s: entry.t_s,
+                world_from_rig: entry.world_from_rig,
+                left: read(self.recording.left_path(entry.index))?,
+                right: read(self.recording.right_path(entry.index))?,
+            })
+        })())
+    }
+
+    fn frame_count(&self) -> Option<usize> {
+        Some(self.recording.frames.len())
+    }
+}
+
+/// A synthetic scenario rendered on the fly, lap after lap (each lap a fresh seed), with frame
+/// indices and times carrying on across laps: an endless headset for `serve --demo`.
+pub struct SyntheticSource {
+    spec: ScenarioSpec,
+    particles: usize,
+    seed: u64,
+    frames_per_lap: usize,
+    laps: Option<u64>,
+    encoding: Encoding,
+    synth: Synthesizer,
+    lap: u64,
+    in_lap: usize,
+}
+
+impl SyntheticSource {
+    /// `laps: None` never ends.
+    pub fn new(spec: ScenarioSpec, seed: u64, laps: Option<u64>, encoding: Encoding) -> Self {
+        let particles = spec.default_particles;
+        let frames_per_lap = spec.default_frames.max(1);
+        let synth = Synthesizer::new(spec.clone(), particles, seed);
+        Self {
+            spec,
+            particles,
+            seed,
+            frames_per_lap,
+            laps,
+            encoding,
+            synth,
+            lap: 0,
+            in_lap: 0,
+        }
+    }
+}
+
+impl FrameSource for SyntheticSource {
+    fn rig(&self) -> &StereoRig {
+        &self.spec.rig
+    }
+
+    fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>> {
+        if self.in_lap == self.frames_per_lap {
+            self.lap += 1;
+            if self.laps.is_some_and(|laps| self.lap >= laps) {
+                return None;
+            }
+            self.in_lap = 0;
+            self.synth = Synthesizer::new(
+                self.spec.clone(),
+                self.particles,
+                self.seed.wrapping_add(self.lap),
+            );
+        }
+        self.in_lap += 1;
+        let f = self.synth.next_frame();
+        let lap_frames = self.lap * self.frames_per_lap as u64;
+        let encode = |pixels: Vec<u8>| match self.encoding {
+            Encoding::Raw8 => Ok(pixels),
+            Encoding::Png => encode_gray_png(&pixels, self.spec.rig.width, self.spec.rig.height)
+                .map_err(ClientError::Image),
+        };
+        Some((|| {
+            Ok(SourceFrame {
+                index: lap_frames + f.index,
+                t_s: lap_frames as f64 * self.spec.frame_interval_s + f.t_s,
+                world_from_rig: f.world_from_rig,
+                left: encode(f.left)?,
+                right: encode(f.right)?,
+            })
+        })())
+    }
+
+    fn frame_count(&self) -> Option<usize> {
+        self.laps.map(|laps| laps as usize * self.frames_per_lap)
+    }
+}
+
+/// How fast frames are sent.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Rate {
+    /// At the recording's own timestamps.
+    Recorded,
+    /// As fast as the server answers, with at most `max_in_flight` frames unanswered.
+    Max,
+    Hz(f64),
+}
+
+impl std::str::FromStr for Rate {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "recorded" => Ok(Rate::Recorded),
+            "max" => Ok(Rate::Max),
+            hz => match hz.parse::<f64>() {
+                Ok(v) if v > 0.0 && v.is_finite() => Ok(Rate::Hz(v)),
+                _ => Err(format!(
+                    "{s:?}: expected \"recorded\", \"max\" or a frame rate in Hz"
+                )),
+            },
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    /// `ws://HOST:PORT/v1/ingest`
+    pub url: String,
+    pub client_name: String,
+    pub encoding: Encoding,
+    pub convention: Convention,
+    pub rate: Rate,
+    /// Frames sent but not yet answered (by a causal batch, an error or a drop notice) at most,
+    /// with `Rate::Max`.
+    pub max_in_flight: usize,
+    /// Pipeline parameters to ask for; the server's when `None`.
+    pub config: Option<PipelineConfig>,
+    /// Keep every batch received in the report (off for endless sources).
+    pub keep_batches: bool,
+    /// How long to wait for the server's bye after ours.
+    pub finish_timeout: Duration,
+}
+
+impl ReplayOptions {
+    pub fn new(url: impl Into<String>) -> Self {
+        Self {
+            url: url.into(),
+            client_name: format!("mrptv-replay {}", env!("CARGO_PKG_VERSION")),
+            encoding: Encoding::Raw8,
+            convention: Convention::OpenCv,
+            rate: Rate::Recorded,
+            max_in_flight: 2,
+            config: None,
+            keep_batches: true,
+            finish_timeout: Duration::from_secs(30),
+        }
+    }
+}
+
+/// What a replay saw.
+#[derive(Debug, Clone, Default)]
+pub struct ReplayReport {
+    pub session: String,
+    pub frames_sent: u64,
+    pub causal_batches: u64,
+    pub refined_batches: u64,
+    pub causal_vectors: u64,
+    pub refined_vectors: u64,
+    /// Kept when `keep_batches`.
+    pub causal: Vec<DecodedBatch>,
+    pub refined: Vec<DecodedBatch>,
+    /// Frame sent -> its causal batch received, seconds, in frame order.
+    pub latencies_s: Vec<f64>,
+    pub errors: Vec<(ErrorCode, String)>,
+    pub dropped_frames: Vec<u64>,
+    /// From the server's bye (or its last status).
+    pub counters: Option<Counters>,
+    pub bye_reason: Option<String>,
+    /// First frame sent to last message received, seconds.
+    pub elapsed_s: f64,
+}
+
+impl ReplayReport {
+    /// Nearest-rank percentile of the latencies, seconds.
+    pub fn latency_percentile_s(&self, percent: f64) -> Option<f64> {
+        let mut sorted = self.latencies_s.clone();
+        sorted.sort_by(f64::total_cmp);
+        let rank = ((percent / 100.0) * sorted.len() as f64).ceil() as usize;
+        sorted.get(rank.clamp(1, sorted.len().max(1)) - 1).copied()
+    }
+}
+
+/// Writes received vectors as `tracks.csv` rows (header included), in the session's convention.
+pub fn write_batches_csv(out: &mut impl Write, batches: &[DecodedBatch]) -> std::io::Result<()> {
+    writeln!(out, "{}", tables::TRACKS_HEADER)?;
+    for b in batches {
+        for v in &b.vectors {
+            let [x, y, z] = v.position_m;
+            let [u, vv, w] = v.velocity_m_per_s;
+            writeln!(
+                out,
+                "{},{},{},{x},{y},{z},{u},{vv},{w}",
+                b.frame_index, b.t_s, v.track_id
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// Runs a source through the frame reader thread into a small channel.
+fn spawn_source(mut source: impl FrameSource) -> mpsc::Receiver<Result<SourceFrame, ClientError>> {
+    let (tx, rx) = mpsc::channel(2);
+    std::thread::spawn(move || {
+        while let Some(frame) = source.next_frame() {
+            let failed = frame.is_err();
+            if tx.blocking_send(frame).is_err() || failed {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Streams `source` to the server at `options.url` until it ends or `stop` resolves, then says
+/// bye and waits for the server's. `progress` gets the number of frames sent.
+pub async fn replay(
+    source: impl FrameSource,
+    options: &ReplayOptions,
+    stop: impl Future<Output = ()>,
+    mut progress: impl FnMut(u64),
+) -> Result<ReplayReport, ClientError> {
+    let rig = source.rig().clone();
+    // Frames are large and batches small: Nagle's algorithm would hold batches back ~40 ms.
+    let (socket, _) =
+        tokio_tungstenite::connect_async_with_config(options.url.as_str(), None, true)
+            .await
+            .map_err(|error| ClientError::Connect {
+                url: options.url.clone(),
+                error,
+            })?;
+    let (mut sink, mut stream) = socket.split();
+    let hello = HeadsetMessage::Hello(Box::new(Hello {
+        protocol: PROTOCOL_VERSION,
+        client: options.client_name.clone(),
+        rig: rig.to_file(),
+        image: ImageFormat {
+            width: rig.width,
+            height: rig.height,
+            encoding: options.encoding,
+        },
+        convention: options.convention,
+        config: options.config.clone(),
+    }));
+    let hello = serde_json::to_string(&hello).map_err(|e| ClientError::Protocol(e.to_string()))?;
+    sink.send(Message::text(hello)).await?;
+    let mut report = ReplayReport::default();
+    // The welcome, or the reason there is none.
+    loop {
+        let message = tokio::time::timeout(Duration::from_secs(30), stream.next())
+            .await
+            .map_err(|_| ClientError::Protocol("no welcome within 30 s".into()))?;
+        match message {
+            Some(Ok(Message::Text(t))) => match serde_json::from_str::<ServerMessage>(t.as_str()) {
+                Ok(ServerMessage::Welcome { session, .. }) => {
+                    report.session = session;
+                    break;
+                }
+                Ok(ServerMessage::Error { code, message, .. }) => {
+                    return Err(ClientError::Refused { code, message })
+                }
+                _ => {}
+            },
+            Some(Ok(_)) => {}
+            Some(Err(e)) => return Err(e.into()),
+            None => return Err(ClientError::Protocol("closed before the welcome".into())),
+        }
+    }
+
+    let (event_tx, mut events) = mpsc::channel::<(Instant, Message)>(4096);
+    let reader = tokio::spawn(async move {
+        while let Some(Ok(m)) = stream.next().await {
+            if event_tx.send((Instant::now(), m)).await.is_err() {
+                break;
+            }
+        }
+    });
+    let mut frames = spawn_source(source);
+    let mut pending: HashMap<u64, Instant> = HashMap::new();
+    let mut latencies: Vec<(u64, f64)> = Vec::new();
+    let started = Instant::now();
+    let mut last_event = started;
+    let mut first_t_s = None;
+    let mut next = frames.recv().await.transpose()?;
+    let mut finished = false;
+    tokio::pin!(stop);
+    let mut handle = |report: &mut ReplayReport,
+                      pending: &mut HashMap<u64, Instant>,
+                      at: Instant,
+                      message: Message|
+     -> Result<bool, ClientError> {
+        match message {
+            Message::Binary(b) => {
+                let batch = decode_batch(&b).map_err(|e| ClientError::Protocol(e.message))?;
+                match batch.kind {
+                    BatchKind::Causal => {
+                        if let Some(sent) = pending.remove(&batch.frame_index) {
+                            latencies.push((batch.frame_index, (at - sent).as_secs_f64()));
+                        }
+                        report.causal_batches += 1;
+                        report.causal_vectors += batch.vectors.len() as u64;
+                        if options.keep_batches {
+                            report.causal.push(batch);
+                        }
+                    }
+                    BatchKind::Refined => {
+                        report.refined_batches += 1;
+                        report.refined_vectors += batch.vectors.len() as u64;
+                        if options.keep_batches {
+                            report.refined.push(batch);
+                        }
+                    }
+                }
+            }
+            Message::Text(t) => match serde_json::from_str::<ServerMessage>(t.as_str()) {
+                Ok(ServerMessage::Error {
+                    code,
+                    message,
+                    frame_index,
+                }) => {
+                    if let Some(i) = frame_index {
+                        pending.remove(&i);
+                    }
+                    tracing::warn!("server: {message}");
+                    report.errors.push((code, message));
+                }
+                Ok(ServerMessage::Dropped { frame_indices, .. }) => {
+                    for i in frame_indices {
+                        pending.remove(&i);
+                        report.dropped_frames.push(i);
+                    }
+                }
+                Ok(ServerMessage::Status { counters, .. }) => report.counters = Some(counters),
+                Ok(ServerMessage::Bye { reason, counters }) => {
+                    report.bye_reason = Some(reason);
+                    if counters.is_some() {
+                        report.counters = counters;
+                    }
+                    return Ok(true);
+                }
+                Ok(_) => {}
+                Err(e) => tracing::debug!("unreadable server message ignored: {e}"),
+            },
+            Message::Close(_) => return Ok(true),
+            _ => {}
+        }
+        Ok(false)
+    };
+
+    while let Some(frame) = next.take() {
+        let t0 = *first_t_s.get_or_insert(frame.t_s);
+        let due = match options.rate {
+            Rate::Recorded => started + Duration::from_secs_f64((frame.t_s - t0).max(0.0)),
+            Rate::Hz(hz) => started + Duration::from_secs_f64(report.frames_sent as f64 / hz),
+            Rate::Max => started,
+        };
+        let window = match options.rate {
+            Rate::Max => options.max_in_flight.max(1),
+            _ => usize::MAX,
+        };
+        if pending.len() < window && Instant::now() >= due {
+            let message = encode_frame(&FrameMessage {
+                encoding: options.encoding,
+                frame_index: frame.index,
+                t_s: frame.t_s,
+                world_from_rig: frame
+                    .world_from_rig
+                    .and_then(|p| options.convention.flip_pose(&p)),
+                left: &frame.left,
+                right: &frame.right,
+            })
+            .map_err(|e| ClientError::Protocol(e.message))?;
+            pending.insert(frame.index, Instant::now());
+            if let Err(e) = sink.send(Message::binary(message)).await {
+                // The server may have said bye (shutting down) while this frame was going out.
+                while let Ok((at, m)) = events.try_recv() {
+                    last_event = at;
+                    if handle(&mut report, &mut pending, at, m)? {
+                        finished = true;
+                    }
+                }
+                if finished {
+                    break;
+                }
+                return Err(e.into());
+            }
+            report.frames_sent += 1;
+            progress(report.frames_sent);
+            next = frames.recv().await.transpose()?;
+            continue;
+        }
+        next = Some(frame);
+        let open = pending.len() < window;
+        tokio::select! {
+            event = events.recv() => match event {
+                Some((at, m)) => {
+                    last_event = at;
+                    if handle(&mut report, &mut pending, at, m)? {
+                        finished = true;
+                        break;
+                    }
+                }
+                None => { finished = true; break; }
+            },
+            _ = tokio::time::sleep_until(due.into()), if open => {}
+            _ = &mut stop => break,
+        }
+    }
+    if !finished {
+        sink.send(Message::text(r#"{"type":"bye"}"#)).await?;
+        let drain = async {
+            while let Some((at, m)) = events.recv().await {
+                last_event = at;
+                if handle(&mut report, &mut pending, at, m)? {
+                    break;
+                }
+            }
+            Ok::<(), ClientError>(())
+        };
+        match tokio::time::timeout(options.finish_timeout, drain).await {
+            Ok(r) => r?,
+            Err(_) => tracing::warn!("no bye from the server within {:?}", options.finish_timeout),
+        }
+    }
+    let _ = sink.close().await;
+    reader.abort();
+    latencies.sort_by_key(|(index, _)| *index);
+    report.latencies_s = latencies.into_iter().map(|(_, s)| s).collect();
+    report.elapsed_s = (last_event - started).as_secs_f64();
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_parse_and_bad_ones_are_explained() {
+        assert_eq!("max".parse::<Rate>(), Ok(Rate::Max));
+        assert_eq!("recorded".parse::<Rate>(), Ok(Rate::Recorded));
+        assert_eq!("30".parse::<Rate>(), Ok(Rate::Hz(30.0)));
+        assert!("-1".parse::<Rate>().is_err());
+        assert!("fast".parse::<Rate>().expect_err("refused").contains("max"));
+    }
+
+    #[test]
+    fn percentiles_use_the_nearest_rank() {
+        let report = ReplayReport {
+            latencies_s: (1..=100).map(|i| i as f64).collect(),
+            ..Default::default()
+        };
+        assert_eq!(report.latency_percentile_s(50.0), Some(50.0));
+        assert_eq!(report.latency_percentile_s(99.0), Some(99.0));
+        assert_eq!(report.latency_percentile_s(100.0), Some(100.0));
+        assert_eq!(ReplayReport::default().latency_percentile_s(50.0), None);
+    }
+
+    #[test]
+    fn synthetic_laps_keep_indices_and_times_increasing() {
+        let spec = ScenarioSpec::new(crate::synth::Scenario::Flume);
+        let mut source = SyntheticSource {
+            frames_per_lap: 3,
+            ..SyntheticSource::new(spec, 1, Some(2), Encoding::Raw8)
+        };
+        let frames: Vec<SourceFrame> = std::iter::from_fn(|| source.next_frame())
+            .collect::<Result<_, _>>()
+            .expect("renders");
+        assert_eq!(frames.len(), 6);
+        assert!(frames
+            .windows(2)
+            .all(|w| w[1].index == w[0].index + 1 && w[1].t_s > w[0].t_s));
+    }
+}

@@ -1,0 +1,632 @@
+//! A headset connection (`/v1/ingest`) and its session: connection task, pipeline thread,
+//! recorder thread.
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::mpsc as std_mpsc;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Bytes;
+use axum::extract::ws::{CloseFrame, Message, WebSocket};
+use futures_util::{SinkExt, StreamExt};
+use nalgebra::Isometry3;
+use tokio::sync::{mpsc, oneshot};
+
+use super::queue::{DropOldestQueue, Pushed};
+use super::{unix_ms, Hub, HubEvent, SessionShared};
+use crate::geometry::StereoRig;
+use crate::protocol::{
+    decode_frame, parse_text, Batch, BatchKind, Convention, Counters, Encoding, ErrorCode,
+    HeadsetMessage, Hello, ProtocolError, ServerMessage, HEADSET_TYPES, PROTOCOL_VERSION,
+};
+use crate::ptv::{ImageView, Pipeline, PipelineError, StereoFrame};
+use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
+
+/// A frame accepted from the socket, waiting for the pipeline.
+struct QueuedFrame {
+    index: u64,
+    t_s: f64,
+    /// OpenCV convention.
+    world_from_rig: Option<Isometry3<f64>>,
+    encoding: Encoding,
+    left: Bytes,
+    right: Bytes,
+}
+
+/// The connection's live session.
+struct Session {
+    shared: Arc<SessionShared>,
+    queue: Arc<DropOldestQueue<QueuedFrame>>,
+    /// Resolves when the pipeline thread has drained the queue and closed the recording.
+    worker_done: oneshot::Receiver<()>,
+}
+
+struct Connection {
+    hub: Arc<Hub>,
+    out: mpsc::Sender<Message>,
+    session: Option<Session>,
+}
+
+/// Serves one headset until it says bye, disconnects, or the server shuts down.
+pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
+    let _guard = hub.connection();
+    let (mut sink, mut stream) = socket.split();
+    let (out, mut outgoing) = mpsc::channel::<Message>(hub.options.headset_buffer.max(1));
+    let writer = tokio::spawn(async move {
+        while let Some(message) = outgoing.recv().await {
+            let closing = matches!(message, Message::Close(_));
+            if sink.send(message).await.is_err() || closing {
+                break;
+            }
+        }
+    });
+    let mut shutdown = hub.shutdown.clone();
+    let mut status = tokio::time::interval(hub.options.status_interval);
+    status.tick().await;
+    let mut conn = Connection {
+        hub: Arc::clone(&hub),
+        out,
+        session: None,
+    };
+    if hub.shutting_down() {
+        conn.finish(Some("server shutting down")).await;
+    } else {
+        loop {
+            tokio::select! {
+                message = stream.next() => match message {
+                    Some(Ok(Message::Text(text))) => {
+                        if conn.on_text(text.as_str()).await {
+                            break;
+                        }
+                    }
+                    Some(Ok(Message::Binary(bytes))) => conn.on_binary(bytes),
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
+                    Some(Ok(Message::Close(_))) | None => {
+                        conn.finish(None).await;
+                        break;
+                    }
+                    Some(Err(e)) => {
+                        tracing::info!("headset connection failed: {e}");
+                        conn.finish(None).await;
+                        break;
+                    }
+                },
+                _ = shutdown.changed() => {
+                    conn.finish(Some("server shutting down")).await;
+                    break;
+                }
+                _ = status.tick() => conn.send_status(),
+            }
+        }
+    }
+    drop(conn);
+    let _ = writer.await;
+}
+
+impl Connection {
+    fn send(&self, message: &ServerMessage) {
+        self.send_raw(Message::Text(message.to_json().into()));
+    }
+
+    fn send_raw(&self, message: Message) {
+        if self.out.try_send(message).is_err() {
+            if let Some(s) = &self.session {
+                s.shared.counters().batches_dropped += 1;
+            }
+        }
+    }
+
+    fn reject(&self, error: ProtocolError) {
+        tracing::debug!(code = ?error.code, "refused: {}", error.message);
+        if let Some(s) = &self.session {
+            if error.frame_index.is_some() || error.code == ErrorCode::BadFrame {
+                s.shared.counters().frames_rejected += 1;
+            }
+        }
+        self.send(&error.to_message());
+    }
+
+    /// Handles a text message; `true` ends the connection.
+    async fn on_text(&mut self, text: &str) -> bool {
+        match parse_text::<HeadsetMessage>(text, HEADSET_TYPES) {
+            Err(e) => self.reject(e),
+            Ok(HeadsetMessage::Bye) => {
+                self.finish(Some("client said bye")).await;
+                return true;
+            }
+            Ok(HeadsetMessage::Hello(hello)) => {
+                if let Some(s) = &self.session {
+                    let message = format!(
+                        "session {} is already started on this connection; reconnect to start another",
+                        s.shared.id
+                    );
+                    self.reject(ProtocolError::new(ErrorCode::AlreadyStarted, message));
+                } else if let Err(e) = self.start(*hello) {
+                    self.reject(e);
+                }
+            }
+        }
+        false
+    }
+
+    fn start(&mut self, hello: Hello) -> Result<(), ProtocolError> {
+        if self.hub.shutting_down() {
+            return Err(ProtocolError::new(
+                ErrorCode::ShuttingDown,
+                "the server is shutting down",
+            ));
+        }
+        let rig = StereoRig::from_file(&hello.rig)
+            .map_err(|e| ProtocolError::new(ErrorCode::BadCalibration, format!("rig: {e}")))?;
+        if (hello.image.width, hello.image.height) != (rig.width, rig.height) {
+            return Err(ProtocolError::new(
+                ErrorCode::BadHello,
+                format!(
+                    "image is {}x{} but rig.image_size is {}x{}",
+                    hello.image.width, hello.image.height, rig.width, rig.height
+                ),
+            ));
+        }
+        let config = hello
+            .config
+            .clone()
+            .unwrap_or_else(|| self.hub.options.config.clone());
+        let pipeline = Pipeline::new(rig.clone(), config).map_err(|e| match e {
+            PipelineError::Calibration(e) => {
+                ProtocolError::new(ErrorCode::BadCalibration, format!("rig: {e}"))
+            }
+            other => ProtocolError::new(ErrorCode::BadConfig, other.to_string()),
+        })?;
+        let number = self.hub.next_session_number();
+        let id = format!("s{number}");
+        let started_unix_ms = unix_ms();
+        let recorder = match &self.hub.options.record_dir {
+            Some(dir) => Some(Recorder::start(
+                dir.join(format!("{id}-{started_unix_ms}")),
+                &rig,
+            )?),
+            None => None,
+        };
+        let shared = Arc::new(SessionShared {
+            number,
+            id: id.clone(),
+            client: hello.client.clone(),
+            width: rig.width,
+            height: rig.height,
+            encoding: hello.image.encoding,
+            convention: hello.convention,
+            started_unix_ms,
+            counters: Default::default(),
+            viewers: Default::default(),
+        });
+        let queue = Arc::new(DropOldestQueue::new(self.hub.options.queue_frames));
+        let (done_tx, worker_done) = oneshot::channel();
+        let welcome = ServerMessage::Welcome {
+            protocol: PROTOCOL_VERSION,
+            server: format!("mrptv {}", env!("CARGO_PKG_VERSION")),
+            session: id.clone(),
+            session_number: number,
+            convention: hello.convention,
+            config: Box::new(pipeline.config().clone()),
+            queue_frames: self.hub.options.queue_frames.max(1),
+            refined_delay_frames: pipeline.config().velocity.half_window_frames,
+        };
+        let worker = Worker {
+            shared: Arc::clone(&shared),
+            pipeline,
+            out: self.out.clone(),
+            events: self.hub.events.clone(),
+            recorder,
+            recent_poses: VecDeque::new(),
+            queue: Arc::clone(&queue),
+            processing_s_total: 0.0,
+        };
+        std::thread::Builder::new()
+            .name(format!("pipeline-{id}"))
+            .spawn(move || {
+                worker.run();
+                let _ = done_tx.send(());
+            })
+            .map_err(|e| {
+                ProtocolError::new(
+                    ErrorCode::Internal,
+                    format!("cannot start a pipeline thread: {e}"),
+                )
+            })?;
+        tracing::info!(session = %id, client = %hello.client, width = rig.width, height = rig.height,
+            encoding = ?hello.image.encoding, convention = ?hello.convention, "session started");
+        self.send(&welcome);
+        self.hub.add_session(Arc::clone(&shared));
+        self.session = Some(Session {
+            shared,
+            queue,
+            worker_done,
+        });
+        Ok(())
+    }
+
+    fn on_binary(&mut self, bytes: Bytes) {
+        let Some(session) = &self.session else {
+            self.reject(ProtocolError::new(
+                ErrorCode::NotReady,
+                "frame before hello: send a hello and wait for the welcome first",
+            ));
+            return;
+        };
+        let frame = match decode_frame(&bytes) {
+            Ok(f) => f,
+            Err(e) => return self.reject(e),
+        };
+        let shared = &session.shared;
+        let index = frame.frame_index;
+        let at_frame = |code, message: String| {
+            let mut e = ProtocolError::new(code, message);
+            e.frame_index = Some(index);
+            e
+        };
+        if frame.encoding != shared.encoding {
+            let message = format!(
+                "frame {index}: images are {:?} but the hello declared {:?}",
+                frame.encoding, shared.encoding
+            );
+            return self.reject(at_frame(ErrorCode::BadFrame, message));
+        }
+        if frame.encoding == Encoding::Raw8 {
+            let expected = shared.width as usize * shared.height as usize;
+            for (camera, image) in [("left", frame.left), ("right", frame.right)] {
+                if image.len() != expected {
+                    let message = format!(
+                        "frame {index}: {camera} image has {} bytes, a {}x{} raw8 image has {expected}",
+                        image.len(),
+                        shared.width,
+                        shared.height
+                    );
+                    return self.reject(at_frame(ErrorCode::BadImage, message));
+                }
+            }
+        }
+        let world_from_rig = match frame.world_from_rig {
+            Some(pose) => match shared.convention.flip_pose(&pose) {
+                Some(p) => Some(p),
+                None => {
+                    let message = format!("frame {index}: world_from_rig is not rigid");
+                    return self.reject(at_frame(ErrorCode::BadFrame, message));
+                }
+            },
+            None => None,
+        };
+        let queued = QueuedFrame {
+            index,
+            t_s: frame.t_s,
+            world_from_rig,
+            encoding: frame.encoding,
+            left: bytes.slice_ref(frame.left),
+            right: bytes.slice_ref(frame.right),
+        };
+        shared.counters().frames_received += 1;
+        match session.queue.push(queued) {
+            Pushed::Queued => {}
+            Pushed::DroppedOldest(old) => {
+                let total = {
+                    let mut c = shared.counters();
+                    c.frames_dropped += 1;
+                    c.frames_dropped
+                };
+                tracing::debug!(session = %shared.id, frame = old.index, "queue full: dropped the oldest frame");
+                self.send(&ServerMessage::Dropped {
+                    session: shared.id.clone(),
+                    frame_indices: vec![old.index],
+                    frames_dropped: total,
+                });
+            }
+            Pushed::Closed(_) => {
+                let message = format!("frame {index}: the session is closing");
+                self.reject(at_frame(ErrorCode::ShuttingDown, message));
+            }
+        }
+    }
+
+    fn send_status(&self) {
+        let Some(session) = &self.session else {
+            return;
+        };
+        let shared = &session.shared;
+        let counters = {
+            let mut c = shared.counters();
+            c.queue_depth = session.queue.len();
+            *c
+        };
+        self.send(&ServerMessage::Status {
+            session: shared.id.clone(),
+            counters,
+        });
+        let _ = self.hub.events.send(HubEvent::Status {
+            session_number: shared.number,
+            id: shared.id.clone(),
+            counters,
+        });
+    }
+
+    /// Ends the session: the pipeline drains what is queued (its batches still go out), the
+    /// recording is completed, then a bye (when `reason` is given: the headset is still there)
+    /// and a close frame.
+    async fn finish(&mut self, reason: Option<&str>) {
+        let counters = match self.session.take() {
+            Some(session) => {
+                session.queue.close();
+                let _ = session.worker_done.await;
+                let counters = *session.shared.counters();
+                self.hub.remove_session(session.shared.number);
+                tracing::info!(session = %session.shared.id, reason = reason.unwrap_or("disconnected"),
+                    received = counters.frames_received, processed = counters.frames_processed,
+                    dropped = counters.frames_dropped, rejected = counters.frames_rejected, "session ended");
+                Some(counters)
+            }
+            None => None,
+        };
+        let Some(reason) = reason else {
+            return;
+        };
+        let bye = ServerMessage::Bye {
+            reason: reason.to_string(),
+            counters,
+        };
+        // The bye must arrive after every batch: wait for room rather than drop it, but never
+        // for long (a headset that stopped reading must not hold up shutdown).
+        let deliver = async {
+            self.out
+                .send(Message::Text(bye.to_json().into()))
+                .await
+                .ok()?;
+            self.out
+                .send(Message::Close(Some(CloseFrame {
+                    code: 1000,
+                    reason: reason.to_string().into(),
+                })))
+                .await
+                .ok()
+        };
+        let _ = tokio::time::timeout(Duration::from_secs(2), deliver).await;
+    }
+}
+
+/// The session's pipeline thread.
+struct Worker {
+    shared: Arc<SessionShared>,
+    pipeline: Pipeline,
+    out: mpsc::Sender<Message>,
+    events: tokio::sync::broadcast::Sender<HubEvent>,
+    recorder: Option<Recorder>,
+    /// Whether each of the last M + 1 frames came with a pose (refined batches describe an
+    /// older frame).
+    recent_poses: VecDeque<(u64, bool)>,
+    queue: Arc<DropOldestQueue<QueuedFrame>>,
+    processing_s_total: f64,
+}
+
+impl Worker {
+    fn run(mut self) {
+        while let Some(frame) = self.queue.pop() {
+            self.process(frame);
+        }
+        if let Some(recorder) = self.recorder.take() {
+            if let Err(e) = recorder.finish() {
+                self.send_error(ProtocolError::new(ErrorCode::Internal, e));
+            }
+        }
+    }
+
+    fn send(&self, message: Message) {
+        if self.out.try_send(message).is_err() {
+            self.shared.counters().batches_dropped += 1;
+        }
+    }
+
+    fn send_error(&self, error: ProtocolError) {
+        self.send(Message::Text(error.to_message().to_json().into()));
+    }
+
+    fn reject(&self, error: ProtocolError) {
+        self.shared.counters().frames_rejected += 1;
+        tracing::debug!(session = %self.shared.id, "frame refused: {}", error.message);
+        self.send_error(error);
+    }
+
+    fn process(&mut self, frame: QueuedFrame) {
+        let started = Instant::now();
+        let (w, h) = (self.shared.width, self.shared.height);
+        let at_frame = |code, message: String| {
+            let mut e = ProtocolError::new(code, message);
+            e.frame_index = Some(frame.index);
+            e
+        };
+        let decode = |camera: &str, bytes: &Bytes| -> Result<Vec<u8>, ProtocolError> {
+            match frame.encoding {
+                Encoding::Raw8 => Ok(bytes.to_vec()),
+                Encoding::Png => decode_gray_png(bytes, w, h).map_err(|m| {
+                    at_frame(
+                        ErrorCode::BadImage,
+                        format!("frame {}: {camera} image: {m}", frame.index),
+                    )
+                }),
+            }
+        };
+        let images =
+            decode("left", &frame.left).and_then(|l| Ok((l, decode("right", &frame.right)?)));
+        let (left, right) = match images {
+            Ok(images) => images,
+            Err(e) => return self.reject(e),
+        };
+        let stereo = StereoFrame {
+            index: frame.index,
+            t_s: frame.t_s,
+            world_from_rig: frame.world_from_rig,
+            left: image_view(w, h, &left),
+            right: image_view(w, h, &right),
+        };
+        let output = match self.pipeline.push(&stereo) {
+            Ok(o) => o,
+            Err(e) => {
+                let code = match e {
+                    PipelineError::Timestamp { .. } => ErrorCode::BadTimestamp,
+                    PipelineError::ImageSize { .. } => ErrorCode::BadImage,
+                    _ => ErrorCode::Internal,
+                };
+                return self.reject(at_frame(code, e.to_string()));
+            }
+        };
+        let processing_s = started.elapsed().as_secs_f64();
+        let processing_us = (processing_s * 1e6).min(u32::MAX as f64) as u32;
+        let m = self.pipeline.config().velocity.half_window_frames;
+        self.recent_poses
+            .push_back((frame.index, frame.world_from_rig.is_some()));
+        if self.recent_poses.len() > m + 1 {
+            self.recent_poses.pop_front();
+        }
+        let convention: Convention = self.shared.convention;
+        let causal = Batch {
+            kind: BatchKind::Causal,
+            session_number: self.shared.number,
+            frame_index: output.frame_index,
+            t_s: output.t_s,
+            world: frame.world_from_rig.is_some(),
+            processing_us,
+            vectors: output.causal_vectors,
+        };
+        self.send(Message::Binary(causal.encode(convention).into()));
+        let refined = output.centred_frame.map(|centre| Batch {
+            kind: BatchKind::Refined,
+            session_number: self.shared.number,
+            frame_index: centre.index,
+            t_s: centre.t_s,
+            world: self
+                .recent_poses
+                .iter()
+                .any(|&(index, posed)| index == centre.index && posed),
+            processing_us,
+            vectors: output.vectors,
+        });
+        if let Some(r) = &refined {
+            self.send(Message::Binary(r.encode(convention).into()));
+        }
+        let sent = causal.vectors.len() + refined.as_ref().map_or(0, |r| r.vectors.len());
+        let _ = self.events.send(HubEvent::Batch(Arc::new(causal)));
+        if let Some(r) = refined {
+            let _ = self.events.send(HubEvent::Batch(Arc::new(r)));
+        }
+        self.processing_s_total += processing_s;
+        {
+            let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();
+            c.frames_processed += 1;
+            c.vectors_sent += sent as u64;
+            c.processing_ms_last = processing_s * 1e3;
+            c.processing_ms_mean = self.processing_s_total * 1e3 / c.frames_processed as f64;
+            c.queue_depth = self.queue.len();
+        }
+        tracing::trace!(session = %self.shared.id, frame = frame.index, vectors = sent,
+            processing_ms = processing_s * 1e3, "frame processed");
+        if let Some(recorder) = &mut self.recorder {
+            let entry = FrameEntry {
+                index: frame.index,
+                t_s: frame.t_s,
+                world_from_rig: frame.world_from_rig,
+            };
+            if let Err(e) = recorder.write(entry, left, right) {
+                self.recorder = None;
+                tracing::error!(session = %self.shared.id, "recording stopped: {e}");
+                self.send_error(ProtocolError::new(
+                    ErrorCode::Internal,
+                    format!("recording stopped: {e}"),
+                ));
+            }
+        }
+    }
+}
+
+fn image_view(width: u32, height: u32, pixels: &[u8]) -> ImageView<'_> {
+    ImageView {
+        width: width as usize,
+        height: height as usize,
+        pixels,
+    }
+}
+
+type RecordedFrame = (FrameEntry, Vec<u8>, Vec<u8>);
+
+/// Writes a session's processed frames on its own thread (PNG encoding is slower than the
+/// pipeline). The channel is bounded: a recorder that cannot keep up slows the pipeline, whose
+/// queue then drops frames *before* they are processed, so the recording always holds exactly
+/// the frames the session processed.
+struct Recorder {
+    dir: PathBuf,
+    frames: Option<std_mpsc::SyncSender<RecordedFrame>>,
+    thread: Option<std::thread::JoinHandle<Result<usize, String>>>,
+}
+
+impl Recorder {
+    fn start(dir: PathBuf, rig: &StereoRig) -> Result<Self, ProtocolError> {
+        let cannot = |e: String| {
+            ProtocolError::new(
+                ErrorCode::Internal,
+                format!("cannot record to {}: {e}", dir.display()),
+            )
+        };
+        if dir.exists() {
+            return Err(cannot("it already exists".into()));
+        }
+        let mut writer =
+            RecordingWriter::create(&dir, rig, true).map_err(|e| cannot(e.to_string()))?;
+        let (tx, rx) = std_mpsc::sync_channel::<RecordedFrame>(8);
+        let thread = std::thread::Builder::new()
+            .name("recorder".into())
+            .spawn(move || {
+                let mut written = 0;
+                for (entry, left, right) in rx {
+                    writer
+                        .write_frame(&entry, &left, &right)
+                        .map_err(|e| e.to_string())?;
+                    written += 1;
+                }
+                Ok(written)
+            })
+            .map_err(|e| cannot(e.to_string()))?;
+        tracing::info!(dir = %dir.display(), "recording");
+        Ok(Self {
+            dir,
+            frames: Some(tx),
+            thread: Some(thread),
+        })
+    }
+
+    fn write(&mut self, entry: FrameEntry, left: Vec<u8>, right: Vec<u8>) -> Result<(), String> {
+        let sent = self
+            .frames
+            .as_ref()
+            .is_some_and(|tx| tx.send((entry, left, right)).is_ok());
+        if sent {
+            Ok(())
+        } else {
+            // The thread ended early: its error says why.
+            self.join()
+        }
+    }
+
+    fn join(&mut self) -> Result<(), String> {
+        self.frames = None;
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(Ok(written))) => {
+                tracing::info!(dir = %self.dir.display(), frames = written, "recording complete");
+                Ok(())
+            }
+            Some(Ok(Err(e))) => Err(e),
+            Some(Err(_)) => Err("the recorder thread panicked".into()),
+            None => Err("the recorder has stopped".into()),
+        }
+    }
+
+    /// Flushes every frame handed over and closes the recording.
+    fn finish(mut self) -> Result<(), String> {
+        self.join()
+    }
+}

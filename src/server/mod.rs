@@ -1,0 +1,326 @@
+//! `mrptv serve`: the live host service (protocol: `protocol/README.md`).
+//!
+//! ## Layout
+//! - [`run`] takes a bound listener, options and a shutdown future (tests bind port 0).
+//! - `ingest`: one task per headset WebSocket reads messages, validates them and hands frames to
+//!   the session's pipeline thread through a [`queue::DropOldestQueue`] (bounded: the oldest frame
+//!   is dropped and reported when the pipeline falls behind). The pipeline thread runs
+//!   [`crate::ptv::Pipeline`], sends the headset its vector batches first, then publishes them to
+//!   viewers and hands the frame to the session's recorder thread.
+//! - `watch`: one task per viewer WebSocket; all sessions publish to one `broadcast` channel, so a
+//!   slow viewer lags (loses the oldest messages) and never holds up a pipeline or other viewers.
+//! - Shutdown: the future resolves, every connection is told through a `watch` channel, each
+//!   session drains its queue, completes its recording and says bye; `run` returns once all have.
+//!
+//! Threads: the tokio runtime runs the network tasks; each session's pipeline and recorder run
+//! on their own OS threads, so CPU-bound work never stalls the sockets.
+
+mod ingest;
+pub mod queue;
+mod watch;
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use axum::extract::{State, WebSocketUpgrade};
+use axum::response::{Html, IntoResponse};
+use axum::routing::get;
+use axum::serve::ListenerExt;
+use axum::{Json, Router};
+use serde::Serialize;
+use tokio::sync::{broadcast, watch as watch_channel, Notify};
+
+use crate::protocol::{Batch, Convention, Counters, Encoding, SessionInfo, PROTOCOL_VERSION};
+use crate::ptv::PipelineConfig;
+
+/// Everything `mrptv serve` can be told; `Default` gives the documented defaults.
+#[derive(Debug, Clone)]
+pub struct ServerOptions {
+    /// Pipeline parameters for sessions whose hello brings none.
+    pub config: PipelineConfig,
+    /// Frames a session holds before dropping the oldest.
+    pub queue_frames: usize,
+    /// Messages buffered for a headset that is slow to read before batches are dropped.
+    pub headset_buffer: usize,
+    /// Events buffered per viewer before the oldest are skipped.
+    pub viewer_buffer: usize,
+    /// Record every session's frames under this directory (`DIR/<session>-<unix ms>/`).
+    pub record_dir: Option<PathBuf>,
+    pub status_interval: Duration,
+    /// Largest WebSocket message accepted, bytes.
+    pub max_message_bytes: usize,
+    /// How long shutdown waits for sessions to finish.
+    pub drain_timeout: Duration,
+}
+
+impl Default for ServerOptions {
+    fn default() -> Self {
+        Self {
+            config: PipelineConfig::default(),
+            queue_frames: 4,
+            headset_buffer: 256,
+            viewer_buffer: 256,
+            record_dir: None,
+            status_interval: Duration::from_secs(1),
+            max_message_bytes: 64 << 20,
+            drain_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What a session's pipeline publishes to viewers.
+#[derive(Debug, Clone)]
+pub(crate) enum HubEvent {
+    Batch(Arc<Batch>),
+    SessionsChanged,
+    Status {
+        session_number: u32,
+        id: String,
+        counters: Counters,
+    },
+    Ended {
+        session_number: u32,
+        id: String,
+        counters: Counters,
+    },
+}
+
+/// One live session as others see it.
+pub(crate) struct SessionShared {
+    pub number: u32,
+    pub id: String,
+    pub client: String,
+    pub width: u32,
+    pub height: u32,
+    pub encoding: Encoding,
+    pub convention: Convention,
+    pub started_unix_ms: u64,
+    pub counters: Mutex<Counters>,
+    /// Viewers subscribed to this session by name.
+    pub viewers: AtomicUsize,
+}
+
+impl SessionShared {
+    pub fn counters(&self) -> MutexGuard<'_, Counters> {
+        self.counters
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+}
+
+/// State shared by every connection.
+pub(crate) struct Hub {
+    pub options: ServerOptions,
+    sessions: Mutex<BTreeMap<u32, Arc<SessionShared>>>,
+    next_session: AtomicU32,
+    /// Viewers subscribed to every session.
+    pub wildcard_viewers: AtomicUsize,
+    pub events: broadcast::Sender<HubEvent>,
+    pub shutdown: watch_channel::Receiver<bool>,
+    connections: AtomicUsize,
+    connections_changed: Notify,
+}
+
+/// Held by each WebSocket connection; shutdown waits until all are dropped.
+pub(crate) struct ConnectionGuard(Arc<Hub>);
+
+impl Drop for ConnectionGuard {
+    fn drop(&mut self) {
+        self.0.connections.fetch_sub(1, Ordering::SeqCst);
+        self.0.connections_changed.notify_waiters();
+    }
+}
+
+impl Hub {
+    fn sessions(&self) -> MutexGuard<'_, BTreeMap<u32, Arc<SessionShared>>> {
+        self.sessions
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    pub fn connection(self: &Arc<Self>) -> ConnectionGuard {
+        self.connections.fetch_add(1, Ordering::SeqCst);
+        ConnectionGuard(Arc::clone(self))
+    }
+
+    pub fn next_session_number(&self) -> u32 {
+        self.next_session.fetch_add(1, Ordering::SeqCst) + 1
+    }
+
+    pub fn add_session(&self, session: Arc<SessionShared>) {
+        self.sessions().insert(session.number, session);
+        let _ = self.events.send(HubEvent::SessionsChanged);
+    }
+
+    pub fn remove_session(&self, number: u32) {
+        if let Some(s) = self.sessions().remove(&number) {
+            let counters = *s.counters();
+            let _ = self.events.send(HubEvent::Ended {
+                session_number: number,
+                id: s.id.clone(),
+                counters,
+            });
+            let _ = self.events.send(HubEvent::SessionsChanged);
+        }
+    }
+
+    pub fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
+        self.sessions().values().find(|s| s.id == id).cloned()
+    }
+
+    pub fn session_list(&self) -> Vec<SessionInfo> {
+        let wildcard = self.wildcard_viewers.load(Ordering::Relaxed);
+        self.sessions()
+            .values()
+            .map(|s| SessionInfo {
+                id: s.id.clone(),
+                client: s.client.clone(),
+                width: s.width,
+                height: s.height,
+                encoding: s.encoding,
+                convention: s.convention,
+                started_unix_ms: s.started_unix_ms,
+                viewers: s.viewers.load(Ordering::Relaxed) + wildcard,
+                counters: *s.counters(),
+            })
+            .collect()
+    }
+
+    pub fn shutting_down(&self) -> bool {
+        *self.shutdown.borrow()
+    }
+}
+
+/// Serves until `shutdown` resolves, then closes every session cleanly (queues drained,
+/// recordings complete, a bye to each headset and viewer) and returns.
+pub async fn run(
+    listener: tokio::net::TcpListener,
+    options: ServerOptions,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
+    let (events, _) = broadcast::channel(options.viewer_buffer.max(1));
+    let drain_timeout = options.drain_timeout;
+    let hub = Arc::new(Hub {
+        options,
+        sessions: Mutex::new(BTreeMap::new()),
+        next_session: AtomicU32::new(0),
+        wildcard_viewers: AtomicUsize::new(0),
+        events,
+        shutdown: shutdown_rx,
+        connections: AtomicUsize::new(0),
+        connections_changed: Notify::new(),
+    });
+    let app = router(Arc::clone(&hub));
+    let signal = async move {
+        shutdown.await;
+        tracing::info!("shutting down: closing sessions");
+        let _ = shutdown_tx.send(true);
+    };
+    // Batches are small and latency-critical: no Nagle delay.
+    let listener = listener.tap_io(|tcp| {
+        if let Err(e) = tcp.set_nodelay(true) {
+            tracing::warn!("cannot set TCP_NODELAY: {e}");
+        }
+    });
+    axum::serve(listener, app)
+        .with_graceful_shutdown(signal)
+        .await?;
+    // Upgraded WebSocket connections outlive axum's own connection tracking: wait for them.
+    let drained = tokio::time::timeout(drain_timeout, async {
+        loop {
+            let changed = hub.connections_changed.notified();
+            if hub.connections.load(Ordering::SeqCst) == 0 {
+                break;
+            }
+            changed.await;
+        }
+    })
+    .await;
+    if drained.is_err() {
+        tracing::warn!(
+            connections = hub.connections.load(Ordering::SeqCst),
+            "shutdown: connections still open after {drain_timeout:?}"
+        );
+    }
+    Ok(())
+}
+
+fn router(hub: Arc<Hub>) -> Router {
+    Router::new()
+        .route("/", get(index))
+        .route("/healthz", get(healthz))
+        .route("/v1/sessions", get(sessions))
+        .route("/v1/ingest", get(ingest_upgrade))
+        .route("/v1/watch", get(watch_upgrade))
+        .with_state(hub)
+}
+
+async fn ingest_upgrade(ws: WebSocketUpgrade, State(hub): State<Arc<Hub>>) -> impl IntoResponse {
+    let max = hub.options.max_message_bytes;
+    ws.max_message_size(max)
+        .max_frame_size(max)
+        .on_upgrade(move |socket| ingest::serve_headset(socket, hub))
+}
+
+async fn watch_upgrade(ws: WebSocketUpgrade, State(hub): State<Arc<Hub>>) -> impl IntoResponse {
+    ws.max_message_size(1 << 20)
+        .on_upgrade(move |socket| watch::serve_viewer(socket, hub))
+}
+
+#[derive(Serialize)]
+struct Health {
+    status: &'static str,
+    protocol: u32,
+    version: &'static str,
+    sessions: usize,
+}
+
+async fn healthz(State(hub): State<Arc<Hub>>) -> Json<Health> {
+    Json(Health {
+        status: if hub.shutting_down() {
+            "shutting_down"
+        } else {
+            "ok"
+        },
+        protocol: PROTOCOL_VERSION,
+        version: env!("CARGO_PKG_VERSION"),
+        sessions: hub.sessions().len(),
+    })
+}
+
+#[derive(Serialize)]
+struct Sessions {
+    sessions: Vec<SessionInfo>,
+}
+
+async fn sessions(State(hub): State<Arc<Hub>>) -> Json<Sessions> {
+    Json(Sessions {
+        sessions: hub.session_list(),
+    })
+}
+
+async fn index() -> Html<&'static str> {
+    Html(concat!(
+        "<!doctype html><meta charset=utf-8><title>mrptv</title>",
+        "<h1>mrptv ",
+        env!("CARGO_PKG_VERSION"),
+        "</h1><ul>",
+        "<li>headsets: WebSocket <code>/v1/ingest</code></li>",
+        "<li>viewers: WebSocket <code>/v1/watch</code></li>",
+        "<li><a href=/v1/sessions>/v1/sessions</a> (JSON)</li>",
+        "<li><a href=/healthz>/healthz</a></li></ul>",
+        "<p>The protocol is specified in <code>protocol/README.md</code>.</p>"
+    ))
+}
+
+/// Milliseconds since the Unix epoch, for session start times and recording names.
+pub(crate) fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}

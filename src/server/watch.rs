@@ -1,0 +1,181 @@
+//! A viewer connection (`/v1/watch`): lists sessions, subscribes to one or all, and receives
+//! their vector batches in the convention it asked for.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use axum::extract::ws::{CloseFrame, Message, WebSocket};
+use futures_util::{SinkExt, StreamExt};
+use tokio::sync::broadcast::error::RecvError;
+
+use super::{Hub, HubEvent};
+use crate::protocol::{
+    parse_text, Convention, ErrorCode, ProtocolError, ServerMessage, ViewerMessage, VIEWER_TYPES,
+};
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Target {
+    All,
+    One(u32),
+}
+
+struct Subscription {
+    target: Target,
+    convention: Convention,
+}
+
+/// Keeps the session's viewer count right however the subscription ends.
+struct Viewer {
+    hub: Arc<Hub>,
+    subscription: Option<Subscription>,
+}
+
+impl Viewer {
+    fn set(&mut self, subscription: Option<Subscription>) {
+        self.count(-1);
+        self.subscription = subscription;
+        self.count(1);
+    }
+
+    fn count(&self, delta: isize) {
+        let Some(s) = &self.subscription else {
+            return;
+        };
+        let apply = |counter: &std::sync::atomic::AtomicUsize| {
+            if delta > 0 {
+                counter.fetch_add(1, Ordering::Relaxed);
+            } else {
+                counter.fetch_sub(1, Ordering::Relaxed);
+            }
+        };
+        match s.target {
+            Target::All => apply(&self.hub.wildcard_viewers),
+            Target::One(number) => {
+                if let Some(session) = self.hub.sessions().get(&number) {
+                    apply(&session.viewers);
+                }
+            }
+        }
+    }
+
+    fn wants(&self, session_number: u32) -> Option<Convention> {
+        let s = self.subscription.as_ref()?;
+        (s.target == Target::All || s.target == Target::One(session_number)).then_some(s.convention)
+    }
+}
+
+impl Drop for Viewer {
+    fn drop(&mut self) {
+        self.count(-1);
+    }
+}
+
+fn text(message: &ServerMessage) -> Message {
+    Message::Text(message.to_json().into())
+}
+
+pub(crate) async fn serve_viewer(socket: WebSocket, hub: Arc<Hub>) {
+    let _guard = hub.connection();
+    let (mut sink, mut stream) = socket.split();
+    let mut events = hub.events.subscribe();
+    let mut shutdown = hub.shutdown.clone();
+    let mut viewer = Viewer {
+        hub: Arc::clone(&hub),
+        subscription: None,
+    };
+    let sessions = || {
+        text(&ServerMessage::Sessions {
+            sessions: hub.session_list(),
+        })
+    };
+    if sink.send(sessions()).await.is_err() {
+        return;
+    }
+    let mut lagged: u64 = 0;
+    loop {
+        let reply = tokio::select! {
+            event = events.recv() => match event {
+                Ok(HubEvent::Batch(batch)) => viewer
+                    .wants(batch.session_number)
+                    .map(|convention| Message::Binary(batch.encode(convention).into())),
+                Ok(HubEvent::SessionsChanged) => Some(sessions()),
+                Ok(HubEvent::Status { session_number, id, counters }) => viewer
+                    .wants(session_number)
+                    .map(|_| text(&ServerMessage::Status { session: id, counters })),
+                Ok(HubEvent::Ended { session_number, id, counters }) => {
+                    let message = text(&ServerMessage::SessionEnded { session: id, counters });
+                    if viewer.wants(session_number).is_some()
+                        && viewer.subscription.as_ref().map(|s| s.target) == Some(Target::One(session_number))
+                    {
+                        // Its session is gone: the count it held went with it.
+                        viewer.subscription = None;
+                    }
+                    Some(message)
+                }
+                Err(RecvError::Lagged(n)) => {
+                    lagged += n;
+                    tracing::debug!(lagged, "viewer too slow: skipped {n} events");
+                    None
+                }
+                Err(RecvError::Closed) => break,
+            },
+            message = stream.next() => match message {
+                Some(Ok(Message::Text(t))) => Some(text(&handle_request(&hub, &mut viewer, t.as_str()))),
+                Some(Ok(Message::Binary(_))) => Some(text(&ServerMessage::error(
+                    ErrorCode::UnknownType,
+                    "viewers send only text messages (subscribe, unsubscribe, list)",
+                ))),
+                Some(Ok(Message::Ping(_) | Message::Pong(_))) => None,
+                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => break,
+            },
+            _ = shutdown.changed() => {
+                let bye = text(&ServerMessage::Bye { reason: "server shutting down".into(), counters: None });
+                let _ = sink.send(bye).await;
+                let _ = sink.send(Message::Close(Some(CloseFrame { code: 1001, reason: "server shutting down".into() }))).await;
+                break;
+            }
+        };
+        if let Some(message) = reply {
+            if sink.send(message).await.is_err() {
+                break;
+            }
+        }
+    }
+}
+
+fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
+    let request = match parse_text::<ViewerMessage>(text, VIEWER_TYPES) {
+        Ok(r) => r,
+        Err(e) => return e.to_message(),
+    };
+    match request {
+        ViewerMessage::List => ServerMessage::Sessions {
+            sessions: hub.session_list(),
+        },
+        ViewerMessage::Unsubscribe => {
+            viewer.set(None);
+            ServerMessage::Unsubscribed
+        }
+        ViewerMessage::Subscribe {
+            session,
+            convention,
+        } => {
+            let target = if session == "*" {
+                Target::All
+            } else if let Some(s) = hub.session_by_id(&session) {
+                Target::One(s.number)
+            } else {
+                return ProtocolError::new(
+                    ErrorCode::UnknownSession,
+                    format!("no live session {session:?} (GET /v1/sessions lists them; \"*\" subscribes to all)"),
+                )
+                .to_message();
+            };
+            viewer.set(Some(Subscription { target, convention }));
+            ServerMessage::Subscribed {
+                session,
+                convention,
+            }
+        }
+    }
+}
