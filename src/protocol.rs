@@ -380,6 +380,14 @@ pub fn parse_text<T: serde::de::DeserializeOwned>(
             ));
         }
     }
+    if let Some(config) = value.get("config").filter(|_| kind == "hello") {
+        if let Err(e) = serde_json::from_value::<PipelineConfig>(config.clone()) {
+            return Err(ProtocolError::new(
+                ErrorCode::BadConfig,
+                format!("bad \"config\" in hello: {e}"),
+            ));
+        }
+    }
     let code = if kind == "hello" {
         ErrorCode::BadHello
     } else {

@@ -163,13 +163,15 @@ fn hard_scenarios_run_and_stay_sane() {
     }
 }
 
-/// The live server's causal estimates (end-point derivative, no latency) are noisier than the
-/// centred ones but must still measure the flow.
+/// The live server's causal estimates (no latency: a line through the last 2M + 1 frames,
+/// evaluated at the newest) are a little noisier than the centred ones but measure the flow.
+/// Bounds: the published method's own centred-estimate bounds (2 % in-plane, 5 % depth) on the
+/// uniform case; the flume, whose centred estimate is itself at 2.6 % in depth, within 2x that.
 #[test]
-fn causal_estimates_measure_the_flow_within_a_few_percent() {
+fn causal_estimates_measure_the_flow() {
     for (scenario, bound_in_plane, bound_depth) in [
-        (Scenario::Uniform, 0.02, 0.10),
-        (Scenario::Flume, 0.03, 0.15),
+        (Scenario::Uniform, 0.02, 0.05),
+        (Scenario::Flume, 0.02, 0.06),
     ] {
         let spec = ScenarioSpec::new(scenario);
         let config = spec.config.clone();
@@ -199,10 +201,11 @@ fn causal_estimates_measure_the_flow_within_a_few_percent() {
         );
         assert!(e.x <= bound_in_plane && e.y <= bound_in_plane, "{e:?}");
         assert!(e.z <= bound_depth, "{e:?}");
-        assert!(causal.ghost_rate <= 0.02, "ghosts {}", causal.ghost_rate);
+        assert!(causal.ghost_rate <= 0.01, "ghosts {}", causal.ghost_rate);
         assert!(
-            causal.track_rows > run.tracks.len(),
-            "causal vectors start sooner and end later than centred ones"
+            causal.yield_fraction >= 0.75,
+            "yield {}",
+            causal.yield_fraction
         );
     }
 }

@@ -75,6 +75,46 @@ pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Qu
     .then_some(fit)
 }
 
+/// Least-squares straight line through `samples`, evaluated at `t_eval_s`: a lower-noise
+/// derivative than the quadratic's where the window is one-sided, at the cost of a bias of
+/// about `acceleration * (t_eval_s - mean sample time)`. `None` with fewer than two samples or
+/// coincident times.
+pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<QuadraticFit> {
+    if samples.len() < 2 {
+        return None;
+    }
+    let n = samples.len() as f64;
+    let mean_t = samples.iter().map(|(t, _)| t - t_eval_s).sum::<f64>() / n;
+    let mean_p = samples.iter().map(|(_, p)| p.coords).sum::<Vector3<f64>>() / n;
+    let mut stt = 0.0;
+    let mut stp = Vector3::zeros();
+    for (t, p) in samples {
+        let dt = t - t_eval_s - mean_t;
+        stt += dt * dt;
+        stp += dt * (p.coords - mean_p);
+    }
+    if stt.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let velocity = stp / stt;
+    let a = mean_p - velocity * mean_t;
+    let squared: f64 = samples
+        .iter()
+        .map(|(t, p)| (p.coords - (a + velocity * (t - t_eval_s))).norm_squared())
+        .sum();
+    let fit = QuadraticFit {
+        position: Point3::from(a),
+        velocity,
+        rms_residual: (squared / n).sqrt(),
+    };
+    (fit.position
+        .coords
+        .iter()
+        .chain(fit.velocity.iter())
+        .all(|v| v.is_finite()))
+    .then_some(fit)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -97,6 +137,20 @@ mod tests {
         let p = Point3::origin();
         assert!(fit_quadratic(&[(0.0, p), (1.0, p)], 0.5).is_none());
         assert!(fit_quadratic(&[(0.0, p), (0.0, p), (0.0, p)], 0.0).is_none());
+    }
+
+    #[test]
+    fn a_line_through_uniform_motion_is_exact_at_any_time() {
+        let samples: Vec<_> = (0..5)
+            .map(|i| {
+                let t = 2.0 + 0.1 * i as f64;
+                (t, Point3::new(1.0 + 3.0 * t, -t, 0.5))
+            })
+            .collect();
+        let fit = fit_line(&samples, 2.4).expect("well posed");
+        assert!((fit.velocity - Vector3::new(3.0, -1.0, 0.0)).norm() < 1e-12);
+        assert!((fit.position - Point3::new(8.2, -2.4, 0.5)).norm() < 1e-12);
+        assert!(fit_line(&samples[..1], 2.0).is_none());
     }
 
     proptest! {

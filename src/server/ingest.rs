@@ -20,7 +20,7 @@ use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Convention, Counters, Encoding, ErrorCode,
     HeadsetMessage, Hello, ProtocolError, ServerMessage, HEADSET_TYPES, PROTOCOL_VERSION,
 };
-use crate::ptv::{ImageView, Pipeline, PipelineError, StereoFrame};
+use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
 
 /// A frame accepted from the socket, waiting for the pipeline.
@@ -38,6 +38,8 @@ struct QueuedFrame {
 struct Session {
     shared: Arc<SessionShared>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
+    /// The last frame index queued: indices must increase (they name recorded files).
+    last_index: std::cell::Cell<Option<u64>>,
     /// Resolves when the pipeline thread has drained the queue and closed the recording.
     worker_done: oneshot::Receiver<()>,
 }
@@ -185,6 +187,7 @@ impl Connection {
             Some(dir) => Some(Recorder::start(
                 dir.join(format!("{id}-{started_unix_ms}")),
                 &rig,
+                pipeline.config(),
             )?),
             None => None,
         };
@@ -241,6 +244,7 @@ impl Connection {
         self.session = Some(Session {
             shared,
             queue,
+            last_index: Default::default(),
             worker_done,
         });
         Ok(())
@@ -265,6 +269,11 @@ impl Connection {
             e.frame_index = Some(index);
             e
         };
+        if let Some(last) = session.last_index.get().filter(|&last| index <= last) {
+            let message =
+                format!("frame {index}: frame_index must increase (the previous frame was {last})");
+            return self.reject(at_frame(ErrorCode::BadFrame, message));
+        }
         if frame.encoding != shared.encoding {
             let message = format!(
                 "frame {index}: images are {:?} but the hello declared {:?}",
@@ -305,6 +314,7 @@ impl Connection {
             right: bytes.slice_ref(frame.right),
         };
         shared.counters().frames_received += 1;
+        session.last_index.set(Some(index));
         match session.queue.push(queued) {
             Pushed::Queued => {}
             Pushed::DroppedOldest(old) => {
@@ -565,7 +575,13 @@ struct Recorder {
 }
 
 impl Recorder {
-    fn start(dir: PathBuf, rig: &StereoRig) -> Result<Self, ProtocolError> {
+    /// Creates the recording, with the session's config as its `mrptv.toml` so that
+    /// `mrptv process` on it uses the parameters the session used.
+    fn start(
+        dir: PathBuf,
+        rig: &StereoRig,
+        config: &PipelineConfig,
+    ) -> Result<Self, ProtocolError> {
         let cannot = |e: String| {
             ProtocolError::new(
                 ErrorCode::Internal,
@@ -577,6 +593,8 @@ impl Recorder {
         }
         let mut writer =
             RecordingWriter::create(&dir, rig, true).map_err(|e| cannot(e.to_string()))?;
+        std::fs::write(dir.join("mrptv.toml"), crate::config::to_toml(config))
+            .map_err(|e| cannot(e.to_string()))?;
         let (tx, rx) = std_mpsc::sync_channel::<RecordedFrame>(8);
         let thread = std::thread::Builder::new()
             .name("recorder".into())

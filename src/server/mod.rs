@@ -136,6 +136,20 @@ impl Drop for ConnectionGuard {
 }
 
 impl Hub {
+    pub fn new(options: ServerOptions, shutdown: watch_channel::Receiver<bool>) -> Self {
+        let (events, _) = broadcast::channel(options.viewer_buffer.max(1));
+        Self {
+            options,
+            sessions: Mutex::new(BTreeMap::new()),
+            next_session: AtomicU32::new(0),
+            wildcard_viewers: AtomicUsize::new(0),
+            events,
+            shutdown,
+            connections: AtomicUsize::new(0),
+            connections_changed: Notify::new(),
+        }
+    }
+
     fn sessions(&self) -> MutexGuard<'_, BTreeMap<u32, Arc<SessionShared>>> {
         self.sessions
             .lock()
@@ -203,18 +217,8 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
     let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
-    let (events, _) = broadcast::channel(options.viewer_buffer.max(1));
     let drain_timeout = options.drain_timeout;
-    let hub = Arc::new(Hub {
-        options,
-        sessions: Mutex::new(BTreeMap::new()),
-        next_session: AtomicU32::new(0),
-        wildcard_viewers: AtomicUsize::new(0),
-        events,
-        shutdown: shutdown_rx,
-        connections: AtomicUsize::new(0),
-        connections_changed: Notify::new(),
-    });
+    let hub = Arc::new(Hub::new(options, shutdown_rx));
     let app = router(Arc::clone(&hub));
     let signal = async move {
         shutdown.await;

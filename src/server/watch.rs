@@ -76,7 +76,18 @@ fn text(message: &ServerMessage) -> Message {
 
 pub(crate) async fn serve_viewer(socket: WebSocket, hub: Arc<Hub>) {
     let _guard = hub.connection();
-    let (mut sink, mut stream) = socket.split();
+    let (sink, stream) = socket.split();
+    run_viewer(sink, stream, hub).await;
+}
+
+/// The viewer loop, over any message sink and stream (a socket, or channels in tests). Events
+/// are taken from the hub's broadcast ring one at a time and sent; while a send waits on a slow
+/// viewer the ring moves on, and the viewer skips what it missed (newest wins).
+async fn run_viewer<S, R, E>(mut sink: S, mut stream: R, hub: Arc<Hub>)
+where
+    S: futures_util::Sink<Message> + Unpin,
+    R: futures_util::Stream<Item = Result<Message, E>> + Unpin,
+{
     let mut events = hub.events.subscribe();
     let mut shutdown = hub.shutdown.clone();
     let mut viewer = Viewer {
@@ -177,5 +188,78 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
                 convention,
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{decode_batch, Batch, BatchKind};
+    use crate::server::ServerOptions;
+    use futures_channel::mpsc;
+
+    fn batch(frame_index: u64) -> HubEvent {
+        HubEvent::Batch(Arc::new(Batch {
+            kind: BatchKind::Causal,
+            session_number: 1,
+            frame_index,
+            t_s: frame_index as f64,
+            world: false,
+            processing_us: 0,
+            vectors: Vec::new(),
+        }))
+    }
+
+    #[tokio::test]
+    async fn a_stalled_viewer_loses_the_oldest_events_and_then_gets_the_newest() {
+        let (_shutdown, shutdown_rx) = tokio::sync::watch::channel(false);
+        let options = ServerOptions {
+            viewer_buffer: 4,
+            ..Default::default()
+        };
+        let hub = Arc::new(Hub::new(options, shutdown_rx));
+        // A sink with no buffer: a send completes only when the test reads.
+        let (to_viewer, mut received) = mpsc::channel::<Message>(0);
+        let (requests, from_viewer) =
+            mpsc::unbounded::<Result<Message, std::convert::Infallible>>();
+        let subscribe = r#"{"type":"subscribe","session":"*"}"#;
+        requests
+            .unbounded_send(Ok(Message::Text(subscribe.into())))
+            .expect("queued");
+        let viewer = tokio::spawn(run_viewer(to_viewer, from_viewer, Arc::clone(&hub)));
+        let mut texts = 0;
+        while texts < 2 {
+            // The session list, then the subscription.
+            match received.next().await.expect("viewer alive") {
+                Message::Text(t) => {
+                    texts += 1;
+                    assert!(
+                        texts == 1 || t.as_str().contains("subscribed"),
+                        "{}",
+                        t.as_str()
+                    );
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        // Publishing never waits for the viewer, however many events go out.
+        for i in 0..50 {
+            hub.events.send(batch(i)).expect("a subscriber");
+        }
+        let mut seen = Vec::new();
+        while seen.last() != Some(&49) {
+            match received.next().await.expect("viewer alive") {
+                Message::Binary(b) => seen.push(decode_batch(&b).expect("batch").frame_index),
+                other => panic!("{other:?}"),
+            }
+        }
+        assert!(seen.len() < 10, "the oldest were skipped: {seen:?}");
+        assert_eq!(
+            &seen[seen.len() - 4..],
+            &[46, 47, 48, 49],
+            "the newest arrive: {seen:?}"
+        );
+        drop(requests);
+        viewer.await.expect("viewer ends when its stream ends");
     }
 }

@@ -1,0 +1,389 @@
+//! Golden protocol messages: `protocol/golden/` holds one file per message below. Every file is
+//! decoded with the library's own decoders and must equal, byte for byte, what the library
+//! encodes for the same message, so the spec's examples and the code cannot drift apart.
+//! `MRPTV_UPDATE_GOLDEN=1 cargo test --test protocol_golden` rewrites them after a deliberate change.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use mrptv::protocol::{
+    decode_batch, decode_frame, encode_frame, parse_text, Batch, BatchKind, Convention, Counters,
+    Encoding, ErrorCode, FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage,
+    SessionInfo, ViewerMessage, HEADSET_TYPES, PROTOCOL_VERSION, VIEWER_TYPES,
+};
+use mrptv::ptv::{PipelineConfig, VelocityVector};
+use mrptv::recording::encode_gray_png;
+use mrptv::synth::{Scenario, ScenarioSpec};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+fn counters() -> Counters {
+    Counters {
+        frames_received: 300,
+        frames_processed: 298,
+        frames_dropped: 2,
+        frames_rejected: 0,
+        vectors_sent: 15000,
+        batches_dropped: 0,
+        queue_depth: 1,
+        processing_ms_last: 2.5,
+        processing_ms_mean: 1.75,
+    }
+}
+
+fn json(value: &impl serde::Serialize) -> Vec<u8> {
+    let mut text = serde_json::to_string_pretty(value).expect("serialises");
+    text.push('\n');
+    text.into_bytes()
+}
+
+fn pose() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(0.25, -0.5, 1.0),
+        UnitQuaternion::from_euler_angles(0.0, 0.5, 0.0),
+    )
+}
+
+fn vectors() -> Vec<VelocityVector> {
+    vec![
+        VelocityVector {
+            frame_index: 42,
+            t_s: 1.4,
+            track_id: 7,
+            position_in_world: Point3::new(0.5, 0.25, 1.5),
+            velocity_in_world: Vector3::new(0.125, -0.0625, 0.03125),
+            rms_residual_m: 0.0005,
+        },
+        VelocityVector {
+            frame_index: 42,
+            t_s: 1.4,
+            track_id: 9,
+            position_in_world: Point3::new(-0.25, 0.0, 0.75),
+            velocity_in_world: Vector3::new(0.0, 0.5, -0.25),
+            rms_residual_m: 0.00025,
+        },
+    ]
+}
+
+/// Every golden message, by file name.
+fn golden() -> BTreeMap<&'static str, Vec<u8>> {
+    let spec = ScenarioSpec::new(Scenario::Flume);
+    let mut config = PipelineConfig::default();
+    config.velocity.half_window_frames = 5;
+    let mut g = BTreeMap::new();
+    let hello = |encoding, convention, config| {
+        HeadsetMessage::Hello(Box::new(Hello {
+            protocol: PROTOCOL_VERSION,
+            client: "HoloLens2 MRPTV app 1.0".into(),
+            rig: spec.rig.to_file(),
+            image: ImageFormat {
+                width: 640,
+                height: 480,
+                encoding,
+            },
+            convention,
+            config,
+        }))
+    };
+    g.insert(
+        "headset-hello.json",
+        json(&hello(
+            Encoding::Raw8,
+            Convention::Unity,
+            Some(config.clone()),
+        )),
+    );
+    g.insert(
+        "headset-hello-png-opencv.json",
+        json(&hello(Encoding::Png, Convention::OpenCv, None)),
+    );
+    g.insert("headset-bye.json", json(&HeadsetMessage::Bye));
+    g.insert(
+        "viewer-subscribe.json",
+        json(&ViewerMessage::Subscribe {
+            session: "s1".into(),
+            convention: Convention::WebXr,
+        }),
+    );
+    g.insert(
+        "viewer-subscribe-all.json",
+        json(&ViewerMessage::Subscribe {
+            session: "*".into(),
+            convention: Convention::WebXr,
+        }),
+    );
+    g.insert("viewer-unsubscribe.json", json(&ViewerMessage::Unsubscribe));
+    g.insert("viewer-list.json", json(&ViewerMessage::List));
+    g.insert(
+        "server-welcome.json",
+        json(&ServerMessage::Welcome {
+            protocol: PROTOCOL_VERSION,
+            server: "mrptv 0.1.0".into(),
+            session: "s1".into(),
+            session_number: 1,
+            convention: Convention::Unity,
+            config: Box::new(config),
+            queue_frames: 4,
+            refined_delay_frames: 5,
+        }),
+    );
+    g.insert(
+        "server-status.json",
+        json(&ServerMessage::Status {
+            session: "s1".into(),
+            counters: counters(),
+        }),
+    );
+    g.insert(
+        "server-dropped.json",
+        json(&ServerMessage::Dropped {
+            session: "s1".into(),
+            frame_indices: vec![41],
+            frames_dropped: 2,
+        }),
+    );
+    g.insert(
+        "server-error-bad-image.json",
+        json(&ServerMessage::Error {
+            code: ErrorCode::BadImage,
+            message: "frame 7: left image has 1000 bytes, a 640x480 raw8 image has 307200".into(),
+            frame_index: Some(7),
+        }),
+    );
+    g.insert(
+        "server-error-not-ready.json",
+        json(&ServerMessage::error(
+            ErrorCode::NotReady,
+            "frame before hello: send a hello and wait for the welcome first",
+        )),
+    );
+    g.insert(
+        "server-bye.json",
+        json(&ServerMessage::Bye {
+            reason: "client said bye".into(),
+            counters: Some(counters()),
+        }),
+    );
+    let info = SessionInfo {
+        id: "s1".into(),
+        client: "HoloLens2 MRPTV app 1.0".into(),
+        width: 640,
+        height: 480,
+        encoding: Encoding::Raw8,
+        convention: Convention::Unity,
+        started_unix_ms: 1_795_320_461_824,
+        viewers: 2,
+        counters: counters(),
+    };
+    g.insert(
+        "server-sessions.json",
+        json(&ServerMessage::Sessions {
+            sessions: vec![info],
+        }),
+    );
+    g.insert(
+        "server-subscribed.json",
+        json(&ServerMessage::Subscribed {
+            session: "s1".into(),
+            convention: Convention::WebXr,
+        }),
+    );
+    g.insert(
+        "server-unsubscribed.json",
+        json(&ServerMessage::Unsubscribed),
+    );
+    g.insert(
+        "server-session_ended.json",
+        json(&ServerMessage::SessionEnded {
+            session: "s1".into(),
+            counters: counters(),
+        }),
+    );
+
+    // Binary: 4x2 images so the files can be read in a hex dump.
+    let left: Vec<u8> = (0..8).collect();
+    let right: Vec<u8> = (100..108).collect();
+    let frame = |encoding, left: &[u8], right: &[u8], pose| {
+        encode_frame(&FrameMessage {
+            encoding,
+            frame_index: 42,
+            t_s: 1.4,
+            world_from_rig: pose,
+            left,
+            right,
+        })
+        .expect("encodes")
+    };
+    g.insert(
+        "frame-raw8-4x2-pose.bin",
+        frame(Encoding::Raw8, &left, &right, Some(pose())),
+    );
+    g.insert(
+        "frame-raw8-4x2.bin",
+        frame(Encoding::Raw8, &left, &right, None),
+    );
+    let left_png = encode_gray_png(&left, 4, 2).expect("png");
+    let right_png = encode_gray_png(&right, 4, 2).expect("png");
+    g.insert(
+        "frame-png-4x2.bin",
+        frame(Encoding::Png, &left_png, &right_png, None),
+    );
+    let batch = |kind, world, vectors| Batch {
+        kind,
+        session_number: 1,
+        frame_index: 42,
+        t_s: 1.4,
+        world,
+        processing_us: 2100,
+        vectors,
+    };
+    g.insert(
+        "batch-causal-unity.bin",
+        batch(BatchKind::Causal, true, vectors()).encode(Convention::Unity),
+    );
+    g.insert(
+        "batch-refined-opencv.bin",
+        batch(BatchKind::Refined, false, vectors()).encode(Convention::OpenCv),
+    );
+    g.insert(
+        "batch-causal-empty-webxr.bin",
+        batch(BatchKind::Causal, false, Vec::new()).encode(Convention::WebXr),
+    );
+    g
+}
+
+fn golden_dir() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("protocol/golden")
+}
+
+#[test]
+fn golden_files_match_what_the_code_encodes() {
+    let expected = golden();
+    let dir = golden_dir();
+    if std::env::var_os("MRPTV_UPDATE_GOLDEN").is_some() {
+        std::fs::create_dir_all(&dir).expect("golden dir");
+        for (name, bytes) in &expected {
+            std::fs::write(dir.join(name), bytes).expect("writes");
+        }
+    }
+    let mut on_disk = BTreeMap::new();
+    for entry in std::fs::read_dir(&dir).expect("protocol/golden exists") {
+        let path = entry.expect("entry").path();
+        let name = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .expect("utf-8 name");
+        if name.ends_with(".json") || name.ends_with(".bin") {
+            on_disk.insert(name.to_string(), std::fs::read(&path).expect("reads"));
+        }
+    }
+    for name in on_disk.keys() {
+        assert!(
+            expected.contains_key(name.as_str()),
+            "{name}: a golden file the test does not know (add it to golden())"
+        );
+    }
+    for (name, bytes) in &expected {
+        let file = on_disk
+            .get(*name)
+            .unwrap_or_else(|| panic!("{name} missing: run with MRPTV_UPDATE_GOLDEN=1"));
+        assert!(
+            file == bytes,
+            "{name} differs from what the code encodes (a deliberate change? MRPTV_UPDATE_GOLDEN=1)"
+        );
+    }
+}
+
+#[test]
+fn every_golden_file_decodes() {
+    for entry in std::fs::read_dir(golden_dir()).expect("protocol/golden exists") {
+        let path = entry.expect("entry").path();
+        let name = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .expect("utf-8 name")
+            .to_string();
+        let bytes = std::fs::read(&path).expect("reads");
+        if name.ends_with(".json") {
+            let text = String::from_utf8(bytes).expect("utf-8 JSON");
+            if name.starts_with("headset-") {
+                parse_text::<HeadsetMessage>(&text, HEADSET_TYPES)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+            } else if name.starts_with("viewer-") {
+                parse_text::<ViewerMessage>(&text, VIEWER_TYPES)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+            } else if name.starts_with("server-") {
+                serde_json::from_str::<ServerMessage>(&text)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+            } else {
+                panic!("{name}: unknown direction prefix");
+            }
+        } else if name.starts_with("frame-") {
+            let f = decode_frame(&bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!((f.frame_index, f.t_s), (42, 1.4), "{name}");
+            assert_eq!(f.world_from_rig.is_some(), name.contains("pose"), "{name}");
+            if let Some(p) = f.world_from_rig {
+                let d = (p.to_homogeneous() - pose().to_homogeneous()).abs().max();
+                assert!(d < 1e-15, "{name}: pose");
+            }
+            let reencoded = encode_frame(&f).expect("encodes");
+            assert_eq!(reencoded, bytes, "{name}: decode-encode round trip");
+        } else if name.starts_with("batch-") {
+            let b = decode_batch(&bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!((b.frame_index, b.session_number), (42, 1), "{name}");
+            let convention = b.convention;
+            for (wire, truth) in b.vectors.iter().zip(vectors()) {
+                assert_eq!(wire.track_id, truth.track_id);
+                // The golden values are exact in float32.
+                let p = convention.flip(&truth.position_in_world.coords);
+                let v = convention.flip(&truth.velocity_in_world);
+                assert_eq!(wire.position_m, [p.x as f32, p.y as f32, p.z as f32]);
+                assert_eq!(wire.velocity_m_per_s, [v.x as f32, v.y as f32, v.z as f32]);
+                assert_eq!(wire.refined(), b.kind == BatchKind::Refined);
+            }
+        }
+    }
+}
+
+/// The layout table of protocol/README.md, read off one golden frame by hand.
+#[test]
+fn frame_bytes_sit_where_the_spec_says() {
+    let bytes = std::fs::read(golden_dir().join("frame-raw8-4x2-pose.bin")).expect("golden");
+    assert_eq!(&bytes[0..4], b"MRPF");
+    assert_eq!(bytes[4], 1, "version");
+    assert_eq!(bytes[5], 0, "raw8");
+    assert_eq!(u16::from_le_bytes([bytes[6], bytes[7]]), 1, "pose flag");
+    assert_eq!(u64::from_le_bytes(bytes[8..16].try_into().expect("8")), 42);
+    assert_eq!(
+        f64::from_le_bytes(bytes[16..24].try_into().expect("8")),
+        1.4
+    );
+    assert_eq!(u32::from_le_bytes(bytes[24..28].try_into().expect("4")), 8);
+    assert_eq!(u32::from_le_bytes(bytes[28..32].try_into().expect("4")), 8);
+    // Row-major pose: m03 (x translation) is the 4th double, m33 the 16th.
+    let m = |k: usize| f64::from_le_bytes(bytes[32 + 8 * k..40 + 8 * k].try_into().expect("8"));
+    assert_eq!(m(3), 0.25);
+    assert_eq!(m(15), 1.0);
+    assert_eq!(&bytes[160..168], &[0, 1, 2, 3, 4, 5, 6, 7]);
+    assert_eq!(&bytes[168..176], &[100, 101, 102, 103, 104, 105, 106, 107]);
+    assert_eq!(bytes.len(), 176);
+
+    let batch = std::fs::read(golden_dir().join("batch-causal-unity.bin")).expect("golden");
+    assert_eq!(&batch[0..4], b"MRPV");
+    assert_eq!((batch[4], batch[5], batch[6], batch[7]), (1, 1, 1, 1));
+    assert_eq!(u32::from_le_bytes(batch[12..16].try_into().expect("4")), 2);
+    assert_eq!(
+        u32::from_le_bytes(batch[32..36].try_into().expect("4")),
+        2100
+    );
+    let f = |at: usize| f32::from_le_bytes(batch[at..at + 4].try_into().expect("4"));
+    assert_eq!(u64::from_le_bytes(batch[40..48].try_into().expect("8")), 7);
+    // Unity flips y: the OpenCV position (0.5, 0.25, 1.5) travels as (0.5, -0.25, 1.5).
+    assert_eq!((f(48), f(52), f(56)), (0.5, -0.25, 1.5));
+    assert_eq!((f(60), f(64), f(68)), (0.125, 0.0625, 0.03125));
+    assert_eq!(
+        u16::from_le_bytes([batch[76], batch[77]]),
+        2,
+        "causal, world"
+    );
+    assert_eq!(batch.len(), 40 + 2 * 40);
+}
