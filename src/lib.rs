@@ -20,8 +20,17 @@
 //!   TOML config), read and written with errors that name file, line and field.
 //! - [`offline`]: the offline commands' work (`synth`, `process`, `demo`), shared by the binary
 //!   and the tests.
+//! - [`protocol`]: the live wire protocol (`protocol/README.md`): JSON control messages, binary
+//!   stereo frames and vector batches, coordinate conventions. Pure encode/decode.
+//! - [`server`]: `mrptv serve` (axum + tokio). A headset connection hands frames to its session's
+//!   pipeline thread through a bounded drop-oldest queue; the pipeline thread sends the headset
+//!   its [`protocol::Batch`]es, publishes them to viewers and feeds the session's recorder thread.
+//! - [`client`]: the reference headset client (`mrptv replay`, and `serve --demo`'s synthetic
+//!   headset).
 //!
-//! Everything runs on the caller's thread; the offline reader decodes PNGs on one helper thread.
+//! Threads: offline, everything runs on the caller's thread (the reader decodes PNGs one frame
+//! ahead on a helper thread). Live, the tokio runtime runs the sockets; each session's pipeline
+//! and recorder have their own OS threads, so CPU-bound work never stalls the network.
 
 pub mod client;
 pub mod config;

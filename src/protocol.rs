@@ -195,9 +195,9 @@ fn default_viewer_convention() -> Convention {
     Convention::WebXr
 }
 
-/// What the server knows of a live session.
+/// What is fixed about a session from its hello on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SessionInfo {
+pub struct SessionDescription {
     pub id: String,
     pub client: String,
     pub width: u32,
@@ -205,6 +205,13 @@ pub struct SessionInfo {
     pub encoding: Encoding,
     pub convention: Convention,
     pub started_unix_ms: u64,
+}
+
+/// What the server knows of a live session.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionInfo {
+    #[serde(flatten)]
+    pub session: SessionDescription,
     pub viewers: usize,
     pub counters: Counters,
 }

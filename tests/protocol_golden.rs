@@ -9,7 +9,7 @@ use std::path::Path;
 use mrptv::protocol::{
     decode_batch, decode_frame, encode_frame, parse_text, Batch, BatchKind, Convention, Counters,
     Encoding, ErrorCode, FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage,
-    SessionInfo, ViewerMessage, HEADSET_TYPES, PROTOCOL_VERSION, VIEWER_TYPES,
+    SessionDescription, SessionInfo, ViewerMessage, HEADSET_TYPES, PROTOCOL_VERSION, VIEWER_TYPES,
 };
 use mrptv::ptv::{PipelineConfig, VelocityVector};
 use mrptv::recording::encode_gray_png;
@@ -164,13 +164,15 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         }),
     );
     let info = SessionInfo {
-        id: "s1".into(),
-        client: "HoloLens2 MRPTV app 1.0".into(),
-        width: 640,
-        height: 480,
-        encoding: Encoding::Raw8,
-        convention: Convention::Unity,
-        started_unix_ms: 1_795_320_461_824,
+        session: SessionDescription {
+            id: "s1".into(),
+            client: "HoloLens2 MRPTV app 1.0".into(),
+            width: 640,
+            height: 480,
+            encoding: Encoding::Raw8,
+            convention: Convention::Unity,
+            started_unix_ms: 1_795_320_461_824,
+        },
         viewers: 2,
         counters: counters(),
     };

@@ -6,8 +6,9 @@
 
 use nalgebra::{Matrix3, Point3, Vector3};
 
+/// A fitted path evaluated at one time.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct QuadraticFit {
+pub struct MotionFit {
     /// Fitted position at the evaluation time (a).
     pub position: Point3<f64>,
     /// Fitted velocity at the evaluation time (b), units per second.
@@ -16,9 +17,21 @@ pub struct QuadraticFit {
     pub rms_residual: f64,
 }
 
+impl MotionFit {
+    /// `None` when a degenerate fit produced non-finite numbers.
+    fn finite(self) -> Option<Self> {
+        self.position
+            .coords
+            .iter()
+            .chain(self.velocity.iter())
+            .all(|v| v.is_finite())
+            .then_some(self)
+    }
+}
+
 /// Least-squares quadratic through `samples` (time in seconds, position), evaluated at `t_eval_s`.
 /// `None` with fewer than three samples or when the times cannot support a quadratic.
-pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<QuadraticFit> {
+pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<MotionFit> {
     if samples.len() < 3 {
         return None;
     }
@@ -62,24 +75,19 @@ pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Qu
             (p.coords - (a + b * tau + c * tau * tau)).norm_squared()
         })
         .sum();
-    let fit = QuadraticFit {
+    let fit = MotionFit {
         position: Point3::from(a),
         velocity: b,
         rms_residual: (squared / samples.len() as f64).sqrt(),
     };
-    (fit.position
-        .coords
-        .iter()
-        .chain(fit.velocity.iter())
-        .all(|v| v.is_finite()))
-    .then_some(fit)
+    fit.finite()
 }
 
 /// Least-squares straight line through `samples`, evaluated at `t_eval_s`: a lower-noise
 /// derivative than the quadratic's where the window is one-sided, at the cost of a bias of
 /// about `acceleration * (t_eval_s - mean sample time)`. `None` with fewer than two samples or
 /// coincident times.
-pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<QuadraticFit> {
+pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<MotionFit> {
     if samples.len() < 2 {
         return None;
     }
@@ -102,17 +110,12 @@ pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Quadrat
         .iter()
         .map(|(t, p)| (p.coords - (a + velocity * (t - t_eval_s))).norm_squared())
         .sum();
-    let fit = QuadraticFit {
+    let fit = MotionFit {
         position: Point3::from(a),
         velocity,
         rms_residual: (squared / n).sqrt(),
     };
-    (fit.position
-        .coords
-        .iter()
-        .chain(fit.velocity.iter())
-        .all(|v| v.is_finite()))
-    .then_some(fit)
+    fit.finite()
 }
 
 #[cfg(test)]

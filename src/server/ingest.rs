@@ -18,7 +18,8 @@ use super::{unix_ms, Hub, HubEvent, SessionShared};
 use crate::geometry::StereoRig;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Convention, Counters, Encoding, ErrorCode,
-    HeadsetMessage, Hello, ProtocolError, ServerMessage, HEADSET_TYPES, PROTOCOL_VERSION,
+    HeadsetMessage, Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES,
+    PROTOCOL_VERSION,
 };
 use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
@@ -141,7 +142,7 @@ impl Connection {
                 if let Some(s) = &self.session {
                     let message = format!(
                         "session {} is already started on this connection; reconnect to start another",
-                        s.shared.id
+                        s.shared.id()
                     );
                     self.reject(ProtocolError::new(ErrorCode::AlreadyStarted, message));
                 } else if let Err(e) = self.start(*hello) {
@@ -193,13 +194,15 @@ impl Connection {
         };
         let shared = Arc::new(SessionShared {
             number,
-            id: id.clone(),
-            client: hello.client.clone(),
-            width: rig.width,
-            height: rig.height,
-            encoding: hello.image.encoding,
-            convention: hello.convention,
-            started_unix_ms,
+            description: SessionDescription {
+                id: id.clone(),
+                client: hello.client.clone(),
+                width: rig.width,
+                height: rig.height,
+                encoding: hello.image.encoding,
+                convention: hello.convention,
+                started_unix_ms,
+            },
             counters: Default::default(),
             viewers: Default::default(),
         });
@@ -274,29 +277,29 @@ impl Connection {
                 format!("frame {index}: frame_index must increase (the previous frame was {last})");
             return self.reject(at_frame(ErrorCode::BadFrame, message));
         }
-        if frame.encoding != shared.encoding {
+        if frame.encoding != shared.description.encoding {
             let message = format!(
                 "frame {index}: images are {:?} but the hello declared {:?}",
-                frame.encoding, shared.encoding
+                frame.encoding, shared.description.encoding
             );
             return self.reject(at_frame(ErrorCode::BadFrame, message));
         }
         if frame.encoding == Encoding::Raw8 {
-            let expected = shared.width as usize * shared.height as usize;
+            let expected = shared.description.width as usize * shared.description.height as usize;
             for (camera, image) in [("left", frame.left), ("right", frame.right)] {
                 if image.len() != expected {
                     let message = format!(
                         "frame {index}: {camera} image has {} bytes, a {}x{} raw8 image has {expected}",
                         image.len(),
-                        shared.width,
-                        shared.height
+                        shared.description.width,
+                        shared.description.height
                     );
                     return self.reject(at_frame(ErrorCode::BadImage, message));
                 }
             }
         }
         let world_from_rig = match frame.world_from_rig {
-            Some(pose) => match shared.convention.flip_pose(&pose) {
+            Some(pose) => match shared.description.convention.flip_pose(&pose) {
                 Some(p) => Some(p),
                 None => {
                     let message = format!("frame {index}: world_from_rig is not rigid");
@@ -323,9 +326,9 @@ impl Connection {
                     c.frames_dropped += 1;
                     c.frames_dropped
                 };
-                tracing::debug!(session = %shared.id, frame = old.index, "queue full: dropped the oldest frame");
+                tracing::debug!(session = %shared.id(), frame = old.index, "queue full: dropped the oldest frame");
                 self.send(&ServerMessage::Dropped {
-                    session: shared.id.clone(),
+                    session: shared.id().to_string(),
                     frame_indices: vec![old.index],
                     frames_dropped: total,
                 });
@@ -348,12 +351,12 @@ impl Connection {
             *c
         };
         self.send(&ServerMessage::Status {
-            session: shared.id.clone(),
+            session: shared.id().to_string(),
             counters,
         });
         let _ = self.hub.events.send(HubEvent::Status {
             session_number: shared.number,
-            id: shared.id.clone(),
+            id: shared.id().to_string(),
             counters,
         });
     }
@@ -368,7 +371,7 @@ impl Connection {
                 let _ = session.worker_done.await;
                 let counters = *session.shared.counters();
                 self.hub.remove_session(session.shared.number);
-                tracing::info!(session = %session.shared.id, reason = reason.unwrap_or("disconnected"),
+                tracing::info!(session = %session.shared.id(), reason = reason.unwrap_or("disconnected"),
                     received = counters.frames_received, processed = counters.frames_processed,
                     dropped = counters.frames_dropped, rejected = counters.frames_rejected, "session ended");
                 Some(counters)
@@ -439,13 +442,16 @@ impl Worker {
 
     fn reject(&self, error: ProtocolError) {
         self.shared.counters().frames_rejected += 1;
-        tracing::debug!(session = %self.shared.id, "frame refused: {}", error.message);
+        tracing::debug!(session = %self.shared.id(), "frame refused: {}", error.message);
         self.send_error(error);
     }
 
     fn process(&mut self, frame: QueuedFrame) {
         let started = Instant::now();
-        let (w, h) = (self.shared.width, self.shared.height);
+        let (w, h) = (
+            self.shared.description.width,
+            self.shared.description.height,
+        );
         let at_frame = |code, message: String| {
             let mut e = ProtocolError::new(code, message);
             e.frame_index = Some(frame.index);
@@ -494,7 +500,7 @@ impl Worker {
         if self.recent_poses.len() > m + 1 {
             self.recent_poses.pop_front();
         }
-        let convention: Convention = self.shared.convention;
+        let convention: Convention = self.shared.description.convention;
         let causal = Batch {
             kind: BatchKind::Causal,
             session_number: self.shared.number,
@@ -534,7 +540,7 @@ impl Worker {
             c.processing_ms_mean = self.processing_s_total * 1e3 / c.frames_processed as f64;
             c.queue_depth = self.queue.len();
         }
-        tracing::trace!(session = %self.shared.id, frame = frame.index, vectors = sent,
+        tracing::trace!(session = %self.shared.id(), frame = frame.index, vectors = sent,
             processing_ms = processing_s * 1e3, "frame processed");
         if let Some(recorder) = &mut self.recorder {
             let entry = FrameEntry {
@@ -544,7 +550,7 @@ impl Worker {
             };
             if let Err(e) = recorder.write(entry, left, right) {
                 self.recorder = None;
-                tracing::error!(session = %self.shared.id, "recording stopped: {e}");
+                tracing::error!(session = %self.shared.id(), "recording stopped: {e}");
                 self.send_error(ProtocolError::new(
                     ErrorCode::Internal,
                     format!("recording stopped: {e}"),

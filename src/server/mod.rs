@@ -34,7 +34,7 @@ use axum::{Json, Router};
 use serde::Serialize;
 use tokio::sync::{broadcast, watch as watch_channel, Notify};
 
-use crate::protocol::{Batch, Convention, Counters, Encoding, SessionInfo, PROTOCOL_VERSION};
+use crate::protocol::{Batch, Counters, SessionDescription, SessionInfo, PROTOCOL_VERSION};
 use crate::ptv::PipelineConfig;
 
 /// Everything `mrptv serve` can be told; `Default` gives the documented defaults.
@@ -92,19 +92,17 @@ pub(crate) enum HubEvent {
 /// One live session as others see it.
 pub(crate) struct SessionShared {
     pub number: u32,
-    pub id: String,
-    pub client: String,
-    pub width: u32,
-    pub height: u32,
-    pub encoding: Encoding,
-    pub convention: Convention,
-    pub started_unix_ms: u64,
+    pub description: SessionDescription,
     pub counters: Mutex<Counters>,
     /// Viewers subscribed to this session by name.
     pub viewers: AtomicUsize,
 }
 
 impl SessionShared {
+    pub fn id(&self) -> &str {
+        &self.description.id
+    }
+
     pub fn counters(&self) -> MutexGuard<'_, Counters> {
         self.counters
             .lock()
@@ -175,7 +173,7 @@ impl Hub {
             let counters = *s.counters();
             let _ = self.events.send(HubEvent::Ended {
                 session_number: number,
-                id: s.id.clone(),
+                id: s.id().to_string(),
                 counters,
             });
             let _ = self.events.send(HubEvent::SessionsChanged);
@@ -183,7 +181,7 @@ impl Hub {
     }
 
     pub fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
-        self.sessions().values().find(|s| s.id == id).cloned()
+        self.sessions().values().find(|s| s.id() == id).cloned()
     }
 
     pub fn session_list(&self) -> Vec<SessionInfo> {
@@ -191,13 +189,7 @@ impl Hub {
         self.sessions()
             .values()
             .map(|s| SessionInfo {
-                id: s.id.clone(),
-                client: s.client.clone(),
-                width: s.width,
-                height: s.height,
-                encoding: s.encoding,
-                convention: s.convention,
-                started_unix_ms: s.started_unix_ms,
+                session: s.description.clone(),
                 viewers: s.viewers.load(Ordering::Relaxed) + wildcard,
                 counters: *s.counters(),
             })
