@@ -527,11 +527,18 @@ async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>)
     let server = tokio::spawn(server::run(listener, options, stopped(stop_rx)));
     termination().await;
     let _ = stop_tx.send(true);
-    server.await.context("server task")??;
+    let report = server.await.context("server task")??;
     if let Some(task) = demo_task {
         let _ = task.await;
     }
-    println!("stopped: every session closed");
+    if report.connections_dropped == 0 {
+        println!("stopped: every session closed");
+    } else {
+        println!(
+            "stopped: every session's frames processed and recorded; {} connection(s) not reading were dropped without their bye",
+            report.connections_dropped
+        );
+    }
     Ok(())
 }
 

@@ -451,23 +451,19 @@ fn read_f32(b: &[u8], at: usize) -> f32 {
 /// undecoded.
 pub fn decode_frame(b: &[u8]) -> Result<FrameMessage<'_>, ProtocolError> {
     if b.len() < FRAME_HEADER_BYTES {
-        return Err(bad_frame(format!(
+        let mut e = bad_frame(format!(
             "frame message of {} bytes is shorter than its {FRAME_HEADER_BYTES}-byte header",
             b.len()
-        )));
+        ));
+        // Name the frame when enough of the header arrived, so the client can count it answered.
+        if b.len() >= 16 && b[0..4] == FRAME_MAGIC {
+            e.frame_index = Some(read_u64(b, 8));
+        }
+        return Err(e);
     }
     if b[0..4] != FRAME_MAGIC {
         return Err(bad_frame(
             "binary message does not start with the frame magic \"MRPF\"",
-        ));
-    }
-    if u32::from(b[4]) != PROTOCOL_VERSION {
-        return Err(ProtocolError::new(
-            ErrorCode::UnsupportedVersion,
-            format!(
-                "frame message version {} is not supported; this server speaks {PROTOCOL_VERSION}",
-                b[4]
-            ),
         ));
     }
     let frame_index = read_u64(b, 8);
@@ -475,6 +471,15 @@ pub fn decode_frame(b: &[u8]) -> Result<FrameMessage<'_>, ProtocolError> {
         e.frame_index = Some(frame_index);
         e
     };
+    if u32::from(b[4]) != PROTOCOL_VERSION {
+        return Err(with_index(ProtocolError::new(
+            ErrorCode::UnsupportedVersion,
+            format!(
+                "frame {frame_index}: message version {} is not supported; this server speaks {PROTOCOL_VERSION}",
+                b[4]
+            ),
+        )));
+    }
     let encoding = Encoding::from_code(b[5])
         .ok_or_else(|| with_index(bad_frame(format!("unknown image encoding code {}", b[5]))))?;
     let flags = read_u16(b, 6);

@@ -147,6 +147,13 @@ pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>,
     if original != image::ExtendedColorType::L8 {
         return Err(format!("expected 8-bit grayscale, found {original:?}"));
     }
+    // Checked before decoding: a few kilobytes of PNG can claim gigapixels.
+    let (w, h) = decoder.dimensions();
+    if (w, h) != (width, height) {
+        return Err(format!(
+            "image is {w}x{h}, rig.json image_size is {width}x{height}"
+        ));
+    }
     let image = image::DynamicImage::from_decoder(decoder)
         .map_err(|e| format!("not a readable PNG: {e}"))?;
     let image::DynamicImage::ImageLuma8(gray) = image else {
@@ -155,14 +162,36 @@ pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>,
             image.color()
         ));
     };
-    if gray.width() != width || gray.height() != height {
-        return Err(format!(
-            "image is {}x{}, rig.json image_size is {width}x{height}",
-            gray.width(),
-            gray.height()
-        ));
-    }
     Ok(gray.into_raw())
+}
+
+#[cfg(test)]
+mod png_tests {
+    use super::*;
+
+    #[test]
+    fn a_png_claiming_a_huge_image_is_refused_before_decoding() {
+        // A valid header for 60000x60000 8-bit grayscale, with almost no data behind it.
+        let mut png = encode_gray_png(&[0; 4], 2, 2).expect("png");
+        let ihdr = 16; // 8-byte signature, 4-byte length, "IHDR"
+        png[ihdr..ihdr + 4].copy_from_slice(&60000u32.to_be_bytes());
+        png[ihdr + 4..ihdr + 8].copy_from_slice(&60000u32.to_be_bytes());
+        // The chunk's CRC-32 covers its type and 13 data bytes.
+        let crc = png[ihdr - 4..ihdr + 13].iter().fold(!0u32, |mut c, &b| {
+            c ^= u32::from(b);
+            for _ in 0..8 {
+                c = if c & 1 != 0 {
+                    (c >> 1) ^ 0xEDB8_8320
+                } else {
+                    c >> 1
+                };
+            }
+            c
+        });
+        png[ihdr + 13..ihdr + 17].copy_from_slice(&(!crc).to_be_bytes());
+        let message = decode_gray_png(&png, 2, 2).expect_err("refused");
+        assert!(message.contains("60000x60000"), "{message}");
+    }
 }
 
 pub fn encode_gray_png(pixels: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {

@@ -372,7 +372,18 @@ fn frame_bytes_sit_where_the_spec_says() {
     let batch = std::fs::read(golden_dir().join("batch-causal-unity.bin")).expect("golden");
     assert_eq!(&batch[0..4], b"MRPV");
     assert_eq!((batch[4], batch[5], batch[6], batch[7]), (1, 1, 1, 1));
+    assert_eq!(
+        u32::from_le_bytes(batch[8..12].try_into().expect("4")),
+        1,
+        "session"
+    );
     assert_eq!(u32::from_le_bytes(batch[12..16].try_into().expect("4")), 2);
+    assert_eq!(u64::from_le_bytes(batch[16..24].try_into().expect("8")), 42);
+    assert_eq!(
+        f64::from_le_bytes(batch[24..32].try_into().expect("8")),
+        1.4
+    );
+    assert_eq!(&batch[36..40], &[0, 0, 0, 0], "reserved");
     assert_eq!(
         u32::from_le_bytes(batch[32..36].try_into().expect("4")),
         2100

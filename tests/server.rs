@@ -24,7 +24,7 @@ use tokio_tungstenite::tungstenite::Message;
 struct TestServer {
     addr: std::net::SocketAddr,
     stop: Option<oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<std::io::Result<()>>,
+    task: tokio::task::JoinHandle<std::io::Result<server::ShutdownReport>>,
 }
 
 impl TestServer {
@@ -50,16 +50,17 @@ impl TestServer {
         format!("ws://{}/v1/watch", self.addr)
     }
 
-    /// Asks the server to shut down and waits until it has.
+    /// Asks the server to shut down and waits until it has, cleanly: every connection closed.
     async fn stop(mut self) {
         if let Some(stop) = self.stop.take() {
             let _ = stop.send(());
         }
-        tokio::time::timeout(Duration::from_secs(20), self.task)
+        let report = tokio::time::timeout(Duration::from_secs(20), self.task)
             .await
             .expect("server stops within 20 s")
             .expect("server task")
             .expect("server ran");
+        assert_eq!(report.connections_dropped, 0, "a clean shutdown");
     }
 }
 
@@ -189,6 +190,18 @@ async fn rust_client_vectors_match_offline_processing_and_the_live_recording() {
         .causal
         .iter()
         .all(|b| b.world && b.kind == BatchKind::Causal));
+    // Posed frames: every batch and vector says world frame; refined vectors say refined.
+    assert!(report
+        .refined
+        .iter()
+        .all(|b| b.world && b.kind == BatchKind::Refined));
+    for b in report.causal.iter().chain(&report.refined) {
+        let refined = b.kind == BatchKind::Refined;
+        assert!(b
+            .vectors
+            .iter()
+            .all(|v| v.flags == if refined { 3 } else { 2 }));
+    }
     assert!(
         report.causal_vectors > 500,
         "{} causal",
@@ -362,10 +375,13 @@ async fn bad_messages_get_clear_errors_and_other_sessions_are_unaffected() {
     let tmp = tempfile::tempdir().expect("tmp");
     let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 40);
     let server = TestServer::start(ServerOptions::default()).await;
-    // A well-behaved headset streams alongside throughout.
+    // A well-behaved headset streams alongside throughout, sending PNG files as they are.
     let good = {
         let rec = rec.clone();
-        let options = replay_options(server.ingest(), &config);
+        let options = ReplayOptions {
+            encoding: Encoding::Png,
+            ..replay_options(server.ingest(), &config)
+        };
         tokio::spawn(async move { replay(&rec, &options).await })
     };
 
@@ -430,6 +446,37 @@ async fn bad_messages_get_clear_errors_and_other_sessions_are_unaffected() {
     let png = frame(0, 0.0, Encoding::Png, &left, &right);
     expect_error(&mut ws, png, ErrorCode::BadFrame).await;
     expect_error(&mut ws, raw(0, f64::NAN), ErrorCode::BadTimestamp).await;
+    let edited = |edit: &dyn Fn(&mut Vec<u8>)| {
+        let Message::Binary(b) = raw(0, 0.0) else {
+            unreachable!()
+        };
+        let mut b = b.to_vec();
+        edit(&mut b);
+        Message::binary(b)
+    };
+    ws.send(edited(&|b| b[4] = 2)).await.expect("sends");
+    match next_text(&mut ws).await {
+        ServerMessage::Error {
+            code, frame_index, ..
+        } => assert_eq!(
+            (code, frame_index),
+            (ErrorCode::UnsupportedVersion, Some(0))
+        ),
+        other => panic!("{other:?}"),
+    }
+    expect_error(&mut ws, edited(&|b| b[6] = 2), ErrorCode::BadFrame).await;
+    let mut scaled = encode_frame(&FrameMessage {
+        encoding: Encoding::Raw8,
+        frame_index: 0,
+        t_s: 0.0,
+        world_from_rig: Some(nalgebra::Isometry3::identity()),
+        left: &left,
+        right: &right,
+    })
+    .expect("encodes");
+    scaled[32..40].copy_from_slice(&1.5f64.to_le_bytes()); // m00 = 1.5: not a rotation
+    let m = expect_error(&mut ws, Message::binary(scaled), ErrorCode::BadFrame).await;
+    assert!(m.contains("rigid"), "{m}");
 
     // A good frame gets its causal batch; the session survived all of the above.
     ws.send(raw(5, 1.0)).await.expect("sends");
@@ -450,11 +497,16 @@ async fn bad_messages_get_clear_errors_and_other_sessions_are_unaffected() {
         }
     };
     assert_eq!(bye.frames_processed, 2);
-    assert_eq!(bye.frames_rejected, 8, "{bye:?}");
+    assert_eq!(bye.frames_rejected, 11, "{bye:?}");
 
     let report = good.await.expect("good headset");
     assert!(report.errors.is_empty(), "{:?}", report.errors);
     assert_eq!(report.counters.map(|c| c.frames_processed), Some(40));
+    // No poses: rig frame, said in every batch and vector.
+    for b in report.causal.iter().chain(&report.refined) {
+        assert!(!b.world);
+        assert!(b.vectors.iter().all(|v| v.flags & 2 == 0));
+    }
     let offline = offline_tracks(&rec, &config, &tmp.path().join("offline.csv"));
     assert_same_vectors(&report.refined, &offline);
     server.stop().await;
@@ -603,26 +655,31 @@ async fn a_headset_outrunning_its_session_loses_the_oldest_frames_and_is_told() 
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn shutdown_says_bye_and_leaves_complete_recordings() {
+async fn shutdown_processes_queued_frames_says_bye_and_leaves_complete_recordings() {
     let tmp = tempfile::tempdir().expect("tmp");
-    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 150);
+    // Slow frames (1000 particles) sent 4 at a time: the queue holds frames when the stop comes.
+    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Dense, 80);
     let record_dir = tmp.path().join("live");
     let server = TestServer::start(ServerOptions {
         record_dir: Some(record_dir.clone()),
         ..Default::default()
     })
     .await;
-    let sessions_url = format!("http://{}/v1/sessions", server.addr);
     let options = ReplayOptions {
-        rate: Rate::Recorded,
+        max_in_flight: 4,
         ..replay_options(server.ingest(), &config)
     };
     let streaming = {
         let rec = rec.clone();
         tokio::spawn(async move { replay(&rec, &options).await })
     };
-    tokio::time::sleep(Duration::from_millis(1500)).await;
-    let listed = http_get(&sessions_url).await;
+    let mut viewer = connect(&server.watch()).await;
+    viewer
+        .send(Message::text(r#"{"type":"subscribe","session":"*"}"#))
+        .await
+        .expect("subscribes");
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let listed = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
     assert!(listed.contains(r#""id":"s1""#), "{listed}");
     let health = http_get(&format!("http://{}/healthz", server.addr)).await;
     assert!(health.contains(r#""status":"ok""#), "{health}");
@@ -631,13 +688,156 @@ async fn shutdown_says_bye_and_leaves_complete_recordings() {
     let report = streaming.await.expect("replay task");
     assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
     let c = report.counters.expect("counters");
-    assert!(c.frames_processed > 10 && c.frames_processed < 150, "{c:?}");
-    // Every frame the server took was processed and recorded before it said bye.
-    assert_eq!(c.frames_processed, c.frames_received);
+    assert!(c.frames_processed > 5 && c.frames_processed < 80, "{c:?}");
+    // Every frame the server took was processed, answered and recorded before it said bye.
+    assert_eq!(c.frames_processed, c.frames_received, "{c:?}");
+    assert_eq!(report.latencies_s.len() as u64, c.frames_processed);
     let recorded = Recording::open(&the_only_subdir(&record_dir)).expect("complete recording");
     assert_eq!(recorded.frames.len() as u64, c.frames_processed);
     let again = offline_tracks(&recorded, &config, &tmp.path().join("again.csv"));
     assert_same_vectors(&report.refined, &again);
+    // The viewer got the session's end before its own bye.
+    let mut ended = false;
+    loop {
+        match next_text(&mut viewer).await {
+            ServerMessage::SessionEnded { .. } => ended = true,
+            ServerMessage::Bye { reason, .. } => {
+                assert_eq!(reason, "server shutting down");
+                break;
+            }
+            _ => {}
+        }
+    }
+    assert!(ended, "session_ended before the viewer's bye");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_headset_vanishing_without_bye_still_gets_its_frames_processed_and_recorded() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 12);
+    let record_dir = tmp.path().join("live");
+    let server = TestServer::start(ServerOptions {
+        record_dir: Some(record_dir.clone()),
+        queue_frames: 16,
+        ..Default::default()
+    })
+    .await;
+    let mut ws = connect(&server.ingest()).await;
+    ws.send(hello(&rec, |_| {})).await.expect("hello");
+    assert!(matches!(
+        next_text(&mut ws).await,
+        ServerMessage::Welcome { .. }
+    ));
+    for entry in &rec.frames {
+        let (left, right) = rec.load(entry).expect("frame");
+        ws.send(frame(entry.index, entry.t_s, Encoding::Raw8, &left, &right))
+            .await
+            .expect("sends");
+    }
+    // Gone mid-stream: no bye, no close handshake.
+    drop(ws);
+    let sessions_url = format!("http://{}/v1/sessions", server.addr);
+    let mut waited = 0;
+    while http_get(&sessions_url).await.contains(r#""id":"s1""#) {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        waited += 1;
+        assert!(waited < 400, "the session ends after its headset vanished");
+    }
+    let recorded = Recording::open(&the_only_subdir(&record_dir)).expect("complete recording");
+    assert_eq!(
+        recorded.frames.len(),
+        12,
+        "every frame sent was processed and recorded"
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewers_list_subscribe_by_id_and_unsubscribe() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 150);
+    let server = TestServer::start(ServerOptions::default()).await;
+    let streaming = {
+        let rec = rec.clone();
+        let options = ReplayOptions {
+            rate: Rate::Recorded,
+            ..replay_options(server.ingest(), &config)
+        };
+        tokio::spawn(async move { replay(&rec, &options).await })
+    };
+    let mut viewer = connect(&server.watch()).await;
+    let id = loop {
+        viewer
+            .send(Message::text(r#"{"type":"list"}"#))
+            .await
+            .expect("lists");
+        if let ServerMessage::Sessions { sessions } = next_text(&mut viewer).await {
+            if let Some(s) = sessions.first() {
+                assert_eq!(s.session.client, "mrptv-replay 0.1.0");
+                break s.session.id.clone();
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let subscribe = format!(r#"{{"type":"subscribe","session":"{id}","convention":"opencv"}}"#);
+    viewer
+        .send(Message::text(subscribe))
+        .await
+        .expect("subscribes");
+    loop {
+        if let ServerMessage::Subscribed {
+            session,
+            convention,
+        } = next_text(&mut viewer).await
+        {
+            assert_eq!(
+                (session.as_str(), convention),
+                (id.as_str(), Convention::OpenCv)
+            );
+            break;
+        }
+    }
+    let batch = next_binary(&mut viewer).await;
+    assert_eq!(
+        (batch.session_number, batch.convention),
+        (1, Convention::OpenCv)
+    );
+    let info = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
+    assert!(info.contains(r#""viewers":1"#), "{info}");
+    viewer
+        .send(Message::text(r#"{"type":"unsubscribe"}"#))
+        .await
+        .expect("unsubscribes");
+    loop {
+        match tokio::time::timeout(Duration::from_secs(20), viewer.next())
+            .await
+            .expect("reply")
+            .expect("open")
+            .expect("readable")
+        {
+            Message::Text(t) if t.as_str().contains("unsubscribed") => break,
+            _ => {}
+        }
+    }
+    // Unsubscribed: batches stop (within what was already on its way).
+    let quiet = tokio::time::timeout(Duration::from_millis(500), async {
+        loop {
+            if let Some(Ok(Message::Binary(_))) = viewer.next().await {
+                continue;
+            }
+        }
+    });
+    let _ = quiet.await;
+    let info = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
+    assert!(info.contains(r#""viewers":0"#), "{info}");
+    let more = tokio::time::timeout(Duration::from_millis(300), viewer.next()).await;
+    assert!(
+        !matches!(more, Ok(Some(Ok(Message::Binary(_))))),
+        "no batches after unsubscribing"
+    );
+    server.stop().await;
+    let report = streaming.await.expect("replay");
+    assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
 }
 
 /// A minimal HTTP/1.1 GET: the body.

@@ -14,12 +14,11 @@ use nalgebra::Isometry3;
 use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
-use super::{unix_ms, Hub, HubEvent, SessionShared};
+use super::{unix_ms, Hub, HubEvent, PublishedBatch, SessionShared};
 use crate::geometry::StereoRig;
 use crate::protocol::{
-    decode_frame, parse_text, Batch, BatchKind, Convention, Counters, Encoding, ErrorCode,
-    HeadsetMessage, Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES,
-    PROTOCOL_VERSION,
+    decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
+    Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
 };
 use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
@@ -56,11 +55,17 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
     let _guard = hub.connection();
     let (mut sink, mut stream) = socket.split();
     let (out, mut outgoing) = mpsc::channel::<Message>(hub.options.headset_buffer.max(1));
+    let send_timeout = hub.options.send_timeout;
     let writer = tokio::spawn(async move {
         while let Some(message) = outgoing.recv().await {
             let closing = matches!(message, Message::Close(_));
-            if sink.send(message).await.is_err() || closing {
-                break;
+            match tokio::time::timeout(send_timeout, sink.send(message)).await {
+                Ok(Ok(())) if !closing => {}
+                Ok(_) => break,
+                Err(_) => {
+                    tracing::info!("headset not reading for {send_timeout:?}: disconnecting it");
+                    break;
+                }
             }
         }
     });
@@ -104,7 +109,11 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
         }
     }
     drop(conn);
-    let _ = writer.await;
+    // The writer ends once it has sent what is queued, or when its peer stops reading.
+    let writer_abort = writer.abort_handle();
+    if tokio::time::timeout(send_timeout, writer).await.is_err() {
+        writer_abort.abort();
+    }
 }
 
 impl Connection {
@@ -122,12 +131,15 @@ impl Connection {
 
     fn reject(&self, error: ProtocolError) {
         tracing::debug!(code = ?error.code, "refused: {}", error.message);
-        if let Some(s) = &self.session {
-            if error.frame_index.is_some() || error.code == ErrorCode::BadFrame {
-                s.shared.counters().frames_rejected += 1;
-            }
-        }
         self.send(&error.to_message());
+    }
+
+    /// Refuses a binary message; in a session, every one counts as a rejected frame.
+    fn reject_frame(&self, error: ProtocolError) {
+        if let Some(s) = &self.session {
+            s.shared.counters().frames_rejected += 1;
+        }
+        self.reject(error);
     }
 
     /// Handles a text message; `true` ends the connection.
@@ -192,6 +204,9 @@ impl Connection {
             )?),
             None => None,
         };
+        let queue = Arc::new(DropOldestQueue::<QueuedFrame>::new(
+            self.hub.options.queue_frames,
+        ));
         let shared = Arc::new(SessionShared {
             number,
             description: SessionDescription {
@@ -205,8 +220,11 @@ impl Connection {
             },
             counters: Default::default(),
             viewers: Default::default(),
+            close_queue: {
+                let queue = Arc::clone(&queue);
+                Box::new(move || queue.close())
+            },
         });
-        let queue = Arc::new(DropOldestQueue::new(self.hub.options.queue_frames));
         let (done_tx, worker_done) = oneshot::channel();
         let welcome = ServerMessage::Welcome {
             protocol: PROTOCOL_VERSION,
@@ -218,6 +236,7 @@ impl Connection {
             queue_frames: self.hub.options.queue_frames.max(1),
             refined_delay_frames: pipeline.config().velocity.half_window_frames,
         };
+        let guard = self.hub.worker();
         let worker = Worker {
             shared: Arc::clone(&shared),
             pipeline,
@@ -233,6 +252,7 @@ impl Connection {
             .spawn(move || {
                 worker.run();
                 let _ = done_tx.send(());
+                drop(guard);
             })
             .map_err(|e| {
                 ProtocolError::new(
@@ -263,7 +283,7 @@ impl Connection {
         };
         let frame = match decode_frame(&bytes) {
             Ok(f) => f,
-            Err(e) => return self.reject(e),
+            Err(e) => return self.reject_frame(e),
         };
         let shared = &session.shared;
         let index = frame.frame_index;
@@ -275,14 +295,14 @@ impl Connection {
         if let Some(last) = session.last_index.get().filter(|&last| index <= last) {
             let message =
                 format!("frame {index}: frame_index must increase (the previous frame was {last})");
-            return self.reject(at_frame(ErrorCode::BadFrame, message));
+            return self.reject_frame(at_frame(ErrorCode::BadFrame, message));
         }
         if frame.encoding != shared.description.encoding {
             let message = format!(
                 "frame {index}: images are {:?} but the hello declared {:?}",
                 frame.encoding, shared.description.encoding
             );
-            return self.reject(at_frame(ErrorCode::BadFrame, message));
+            return self.reject_frame(at_frame(ErrorCode::BadFrame, message));
         }
         if frame.encoding == Encoding::Raw8 {
             let expected = shared.description.width as usize * shared.description.height as usize;
@@ -294,7 +314,7 @@ impl Connection {
                         shared.description.width,
                         shared.description.height
                     );
-                    return self.reject(at_frame(ErrorCode::BadImage, message));
+                    return self.reject_frame(at_frame(ErrorCode::BadImage, message));
                 }
             }
         }
@@ -303,7 +323,7 @@ impl Connection {
                 Some(p) => Some(p),
                 None => {
                     let message = format!("frame {index}: world_from_rig is not rigid");
-                    return self.reject(at_frame(ErrorCode::BadFrame, message));
+                    return self.reject_frame(at_frame(ErrorCode::BadFrame, message));
                 }
             },
             None => None,
@@ -335,7 +355,7 @@ impl Connection {
             }
             Pushed::Closed(_) => {
                 let message = format!("frame {index}: the session is closing");
-                self.reject(at_frame(ErrorCode::ShuttingDown, message));
+                self.reject_frame(at_frame(ErrorCode::ShuttingDown, message));
             }
         }
     }
@@ -430,14 +450,27 @@ impl Worker {
         }
     }
 
-    fn send(&self, message: Message) {
-        if self.out.try_send(message).is_err() {
+    /// `false` when the headset's buffer was full and the message was dropped.
+    fn send(&self, message: Message) -> bool {
+        let sent = self.out.try_send(message).is_ok();
+        if !sent {
             self.shared.counters().batches_dropped += 1;
         }
+        sent
     }
 
     fn send_error(&self, error: ProtocolError) {
         self.send(Message::Text(error.to_message().to_json().into()));
+    }
+
+    /// Sends a batch to the headset; the number of vectors delivered.
+    fn send_batch(&self, batch: &PublishedBatch) -> u64 {
+        let bytes = batch.encoded(self.shared.description.convention);
+        if self.send(Message::Binary(bytes)) {
+            batch.batch.vectors.len() as u64
+        } else {
+            0
+        }
     }
 
     fn reject(&self, error: ProtocolError) {
@@ -457,10 +490,12 @@ impl Worker {
             e.frame_index = Some(frame.index);
             e
         };
-        let decode = |camera: &str, bytes: &Bytes| -> Result<Vec<u8>, ProtocolError> {
+        // Raw pixels stay in the message's buffer: no copy on the way to the pipeline or the
+        // recorder.
+        let decode = |camera: &str, bytes: &Bytes| -> Result<Bytes, ProtocolError> {
             match frame.encoding {
-                Encoding::Raw8 => Ok(bytes.to_vec()),
-                Encoding::Png => decode_gray_png(bytes, w, h).map_err(|m| {
+                Encoding::Raw8 => Ok(bytes.clone()),
+                Encoding::Png => decode_gray_png(bytes, w, h).map(Bytes::from).map_err(|m| {
                     at_frame(
                         ErrorCode::BadImage,
                         format!("frame {}: {camera} image: {m}", frame.index),
@@ -500,8 +535,7 @@ impl Worker {
         if self.recent_poses.len() > m + 1 {
             self.recent_poses.pop_front();
         }
-        let convention: Convention = self.shared.description.convention;
-        let causal = Batch {
+        let causal = PublishedBatch::new(Batch {
             kind: BatchKind::Causal,
             session_number: self.shared.number,
             frame_index: output.frame_index,
@@ -509,24 +543,25 @@ impl Worker {
             world: frame.world_from_rig.is_some(),
             processing_us,
             vectors: output.causal_vectors,
-        };
-        self.send(Message::Binary(causal.encode(convention).into()));
-        let refined = output.centred_frame.map(|centre| Batch {
-            kind: BatchKind::Refined,
-            session_number: self.shared.number,
-            frame_index: centre.index,
-            t_s: centre.t_s,
-            world: self
-                .recent_poses
-                .iter()
-                .any(|&(index, posed)| index == centre.index && posed),
-            processing_us,
-            vectors: output.vectors,
+        });
+        let mut sent = self.send_batch(&causal);
+        let refined = output.centred_frame.map(|centre| {
+            PublishedBatch::new(Batch {
+                kind: BatchKind::Refined,
+                session_number: self.shared.number,
+                frame_index: centre.index,
+                t_s: centre.t_s,
+                world: self
+                    .recent_poses
+                    .iter()
+                    .any(|&(index, posed)| index == centre.index && posed),
+                processing_us,
+                vectors: output.vectors,
+            })
         });
         if let Some(r) = &refined {
-            self.send(Message::Binary(r.encode(convention).into()));
+            sent += self.send_batch(r);
         }
-        let sent = causal.vectors.len() + refined.as_ref().map_or(0, |r| r.vectors.len());
         let _ = self.events.send(HubEvent::Batch(Arc::new(causal)));
         if let Some(r) = refined {
             let _ = self.events.send(HubEvent::Batch(Arc::new(r)));
@@ -535,7 +570,7 @@ impl Worker {
         {
             let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();
             c.frames_processed += 1;
-            c.vectors_sent += sent as u64;
+            c.vectors_sent += sent;
             c.processing_ms_last = processing_s * 1e3;
             c.processing_ms_mean = self.processing_s_total * 1e3 / c.frames_processed as f64;
             c.queue_depth = self.queue.len();
@@ -568,7 +603,7 @@ fn image_view(width: u32, height: u32, pixels: &[u8]) -> ImageView<'_> {
     }
 }
 
-type RecordedFrame = (FrameEntry, Vec<u8>, Vec<u8>);
+type RecordedFrame = (FrameEntry, Bytes, Bytes);
 
 /// Writes a session's processed frames on its own thread (PNG encoding is slower than the
 /// pipeline). The channel is bounded: a recorder that cannot keep up slows the pipeline, whose
@@ -623,7 +658,7 @@ impl Recorder {
         })
     }
 
-    fn write(&mut self, entry: FrameEntry, left: Vec<u8>, right: Vec<u8>) -> Result<(), String> {
+    fn write(&mut self, entry: FrameEntry, left: Bytes, right: Bytes) -> Result<(), String> {
         let sent = self
             .frames
             .as_ref()

@@ -10,7 +10,10 @@
 //! - `watch`: one task per viewer WebSocket; all sessions publish to one `broadcast` channel, so a
 //!   slow viewer lags (loses the oldest messages) and never holds up a pipeline or other viewers.
 //! - Shutdown: the future resolves, every connection is told through a `watch` channel, each
-//!   session drains its queue, completes its recording and says bye; `run` returns once all have.
+//!   session drains its queue, completes its recording and says bye; viewers get the last
+//!   batches, then their bye. `run` waits for the connections (`drain_timeout`; a peer that stopped
+//!   reading is dropped) and, with no time limit, for every pipeline thread: no frame the server
+//!   took goes unprocessed or unrecorded.
 //!
 //! Threads: the tokio runtime runs the network tasks; each session's pipeline and recorder run
 //! on their own OS threads, so CPU-bound work never stalls the sockets.
@@ -23,9 +26,10 @@ use std::collections::BTreeMap;
 use std::future::Future;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::Duration;
 
+use axum::body::Bytes;
 use axum::extract::{State, WebSocketUpgrade};
 use axum::response::{Html, IntoResponse};
 use axum::routing::get;
@@ -34,7 +38,9 @@ use axum::{Json, Router};
 use serde::Serialize;
 use tokio::sync::{broadcast, watch as watch_channel, Notify};
 
-use crate::protocol::{Batch, Counters, SessionDescription, SessionInfo, PROTOCOL_VERSION};
+use crate::protocol::{
+    Batch, Convention, Counters, SessionDescription, SessionInfo, PROTOCOL_VERSION,
+};
 use crate::ptv::PipelineConfig;
 
 /// Everything `mrptv serve` can be told; `Default` gives the documented defaults.
@@ -53,7 +59,10 @@ pub struct ServerOptions {
     pub status_interval: Duration,
     /// Largest WebSocket message accepted, bytes.
     pub max_message_bytes: usize,
-    /// How long shutdown waits for sessions to finish.
+    /// A peer that takes longer than this to accept one message is disconnected.
+    pub send_timeout: Duration,
+    /// How long shutdown waits for connections to close. Sessions' frames are processed and
+    /// their recordings completed whatever this is.
     pub drain_timeout: Duration,
 }
 
@@ -63,19 +72,42 @@ impl Default for ServerOptions {
             config: PipelineConfig::default(),
             queue_frames: 4,
             headset_buffer: 256,
-            viewer_buffer: 256,
+            viewer_buffer: 1024,
             record_dir: None,
             status_interval: Duration::from_secs(1),
             max_message_bytes: 64 << 20,
+            send_timeout: Duration::from_secs(10),
             drain_timeout: Duration::from_secs(10),
         }
+    }
+}
+
+/// A batch on its way to viewers, encoded at most once per convention however many watch.
+#[derive(Debug)]
+pub(crate) struct PublishedBatch {
+    pub batch: Batch,
+    encoded: [OnceLock<Bytes>; 3],
+}
+
+impl PublishedBatch {
+    pub fn new(batch: Batch) -> Self {
+        Self {
+            batch,
+            encoded: Default::default(),
+        }
+    }
+
+    pub fn encoded(&self, convention: Convention) -> Bytes {
+        self.encoded[usize::from(convention.code())]
+            .get_or_init(|| self.batch.encode(convention).into())
+            .clone()
     }
 }
 
 /// What a session's pipeline publishes to viewers.
 #[derive(Debug, Clone)]
 pub(crate) enum HubEvent {
-    Batch(Arc<Batch>),
+    Batch(Arc<PublishedBatch>),
     SessionsChanged,
     Status {
         session_number: u32,
@@ -96,6 +128,8 @@ pub(crate) struct SessionShared {
     pub counters: Mutex<Counters>,
     /// Viewers subscribed to this session by name.
     pub viewers: AtomicUsize,
+    /// Closes the session's frame queue: its pipeline then finishes what is queued and ends.
+    pub close_queue: Box<dyn Fn() + Send + Sync>,
 }
 
 impl SessionShared {
@@ -121,6 +155,19 @@ pub(crate) struct Hub {
     pub shutdown: watch_channel::Receiver<bool>,
     connections: AtomicUsize,
     connections_changed: Notify,
+    /// Session pipeline threads still running.
+    workers: AtomicUsize,
+    workers_changed: Notify,
+}
+
+/// Held by each session's pipeline thread; shutdown waits until all are dropped.
+pub(crate) struct WorkerGuard(Arc<Hub>);
+
+impl Drop for WorkerGuard {
+    fn drop(&mut self) {
+        self.0.workers.fetch_sub(1, Ordering::SeqCst);
+        self.0.workers_changed.notify_waiters();
+    }
 }
 
 /// Held by each WebSocket connection; shutdown waits until all are dropped.
@@ -145,7 +192,14 @@ impl Hub {
             shutdown,
             connections: AtomicUsize::new(0),
             connections_changed: Notify::new(),
+            workers: AtomicUsize::new(0),
+            workers_changed: Notify::new(),
         }
+    }
+
+    pub fn worker(self: &Arc<Self>) -> WorkerGuard {
+        self.workers.fetch_add(1, Ordering::SeqCst);
+        WorkerGuard(Arc::clone(self))
     }
 
     fn sessions(&self) -> MutexGuard<'_, BTreeMap<u32, Arc<SessionShared>>> {
@@ -199,6 +253,29 @@ impl Hub {
     pub fn shutting_down(&self) -> bool {
         *self.shutdown.borrow()
     }
+
+    pub fn session_count(&self) -> usize {
+        self.sessions().len()
+    }
+}
+
+/// Waits until `count` reads 0, re-checking whenever `changed` is notified.
+async fn until_zero(count: &AtomicUsize, changed: &Notify) {
+    loop {
+        let notified = changed.notified();
+        if count.load(Ordering::SeqCst) == 0 {
+            return;
+        }
+        notified.await;
+    }
+}
+
+/// How a shutdown went.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShutdownReport {
+    /// Connections still open after `drain_timeout` (peers that stopped reading); they were
+    /// dropped. Their sessions' frames were still all processed and recorded.
+    pub connections_dropped: usize,
 }
 
 /// Serves until `shutdown` resolves, then closes every session cleanly (queues drained,
@@ -207,7 +284,7 @@ pub async fn run(
     listener: tokio::net::TcpListener,
     options: ServerOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
-) -> std::io::Result<()> {
+) -> std::io::Result<ShutdownReport> {
     let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
     let drain_timeout = options.drain_timeout;
     let hub = Arc::new(Hub::new(options, shutdown_rx));
@@ -227,23 +304,30 @@ pub async fn run(
         .with_graceful_shutdown(signal)
         .await?;
     // Upgraded WebSocket connections outlive axum's own connection tracking: wait for them.
-    let drained = tokio::time::timeout(drain_timeout, async {
-        loop {
-            let changed = hub.connections_changed.notified();
-            if hub.connections.load(Ordering::SeqCst) == 0 {
-                break;
-            }
-            changed.await;
-        }
-    })
+    let drained = tokio::time::timeout(
+        drain_timeout,
+        until_zero(&hub.connections, &hub.connections_changed),
+    )
     .await;
-    if drained.is_err() {
+    let connections_dropped = if drained.is_err() {
+        let open = hub.connections.load(Ordering::SeqCst);
         tracing::warn!(
-            connections = hub.connections.load(Ordering::SeqCst),
-            "shutdown: connections still open after {drain_timeout:?}"
+            connections = open,
+            "shutdown: {open} connection(s) still open after {drain_timeout:?}; dropping them"
         );
-    }
-    Ok(())
+        for session in hub.sessions().values() {
+            (session.close_queue)();
+        }
+        open
+    } else {
+        0
+    };
+    // Pipelines end once their queues are closed and drained, and only after their recordings
+    // are complete: no time limit here, the work left is bounded by the queue sizes.
+    until_zero(&hub.workers, &hub.workers_changed).await;
+    Ok(ShutdownReport {
+        connections_dropped,
+    })
 }
 
 fn router(hub: Arc<Hub>) -> Router {

@@ -90,6 +90,7 @@ where
 {
     let mut events = hub.events.subscribe();
     let mut shutdown = hub.shutdown.clone();
+    let send_timeout = hub.options.send_timeout;
     let mut viewer = Viewer {
         hub: Arc::clone(&hub),
         subscription: None,
@@ -99,25 +100,41 @@ where
             sessions: hub.session_list(),
         })
     };
-    if sink.send(sessions()).await.is_err() {
-        return;
-    }
+    // On shutdown the viewer keeps receiving until the sessions have drained (their last
+    // batches and `session_ended`), then gets its bye; never longer than half the drain time.
+    let mut closing_by: Option<tokio::time::Instant> = hub
+        .shutting_down()
+        .then(|| tokio::time::Instant::now() + hub.options.drain_timeout / 2);
+    let mut reply = Some(sessions());
     let mut lagged: u64 = 0;
     loop {
-        let reply = tokio::select! {
+        if let Some(message) = reply.take() {
+            // A viewer that cannot take one message in `send_timeout` is gone.
+            match tokio::time::timeout(send_timeout, sink.send(message)).await {
+                Ok(Ok(())) => {}
+                Ok(Err(_)) => return,
+                Err(_) => {
+                    tracing::info!("viewer not reading for {send_timeout:?}: disconnecting it");
+                    return;
+                }
+            }
+        }
+        if closing_by.is_some() && hub.session_count() == 0 {
+            break;
+        }
+        let deadline = closing_by.unwrap_or_else(|| tokio::time::Instant::now() + send_timeout);
+        reply = tokio::select! {
             event = events.recv() => match event {
-                Ok(HubEvent::Batch(batch)) => viewer
-                    .wants(batch.session_number)
-                    .map(|convention| Message::Binary(batch.encode(convention).into())),
+                Ok(HubEvent::Batch(published)) => viewer
+                    .wants(published.batch.session_number)
+                    .map(|convention| Message::Binary(published.encoded(convention))),
                 Ok(HubEvent::SessionsChanged) => Some(sessions()),
                 Ok(HubEvent::Status { session_number, id, counters }) => viewer
                     .wants(session_number)
                     .map(|_| text(&ServerMessage::Status { session: id, counters })),
                 Ok(HubEvent::Ended { session_number, id, counters }) => {
                     let message = text(&ServerMessage::SessionEnded { session: id, counters });
-                    if viewer.wants(session_number).is_some()
-                        && viewer.subscription.as_ref().map(|s| s.target) == Some(Target::One(session_number))
-                    {
+                    if viewer.subscription.as_ref().map(|s| s.target) == Some(Target::One(session_number)) {
                         // Its session is gone: the count it held went with it.
                         viewer.subscription = None;
                     }
@@ -137,21 +154,30 @@ where
                     "viewers send only text messages (subscribe, unsubscribe, list)",
                 ))),
                 Some(Ok(Message::Ping(_) | Message::Pong(_))) => None,
-                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => break,
+                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return,
             },
-            _ = shutdown.changed() => {
-                let bye = text(&ServerMessage::Bye { reason: "server shutting down".into(), counters: None });
-                let _ = sink.send(bye).await;
-                let _ = sink.send(Message::Close(Some(CloseFrame { code: 1001, reason: "server shutting down".into() }))).await;
-                break;
+            // Once seen (or once the sender is gone), `changed` would fire at once forever.
+            _ = shutdown.changed(), if closing_by.is_none() => {
+                closing_by = Some(tokio::time::Instant::now() + hub.options.drain_timeout / 2);
+                None
             }
+            _ = tokio::time::sleep_until(deadline), if closing_by.is_some() => break,
         };
-        if let Some(message) = reply {
-            if sink.send(message).await.is_err() {
-                break;
-            }
-        }
     }
+    let bye = text(&ServerMessage::Bye {
+        reason: "server shutting down".into(),
+        counters: None,
+    });
+    let close = Message::Close(Some(CloseFrame {
+        code: 1001,
+        reason: "server shutting down".into(),
+    }));
+    let _ = tokio::time::timeout(send_timeout, async {
+        if sink.send(bye).await.is_ok() {
+            let _ = sink.send(close).await;
+        }
+    })
+    .await;
 }
 
 fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
@@ -195,11 +221,11 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
 mod tests {
     use super::*;
     use crate::protocol::{decode_batch, Batch, BatchKind};
-    use crate::server::ServerOptions;
+    use crate::server::{PublishedBatch, ServerOptions};
     use futures_channel::mpsc;
 
     fn batch(frame_index: u64) -> HubEvent {
-        HubEvent::Batch(Arc::new(Batch {
+        HubEvent::Batch(Arc::new(PublishedBatch::new(Batch {
             kind: BatchKind::Causal,
             session_number: 1,
             frame_index,
@@ -207,7 +233,7 @@ mod tests {
             world: false,
             processing_us: 0,
             vectors: Vec::new(),
-        }))
+        })))
     }
 
     #[tokio::test]
