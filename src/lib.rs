@@ -40,6 +40,7 @@ pub mod offline;
 pub mod protocol;
 pub mod ptv;
 pub mod recording;
+pub mod rerun_log;
 pub mod server;
 pub mod synth;
 pub mod tables;

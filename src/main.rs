@@ -16,6 +16,7 @@ use mrptv::offline::{self, ProcessSinks, Sink};
 use mrptv::protocol::{Convention, Encoding};
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
+use mrptv::rerun_log::{RerunLogger, RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tables;
@@ -73,6 +74,13 @@ enum Command {
         /// Use the published method's choices (no mrptv improvements) as the base config.
         #[arg(long)]
         method: bool,
+        /// Log the run to Rerun: file:RUN.rrd, connect (a viewer on this machine) or
+        /// connect:URL. Repeat for several.
+        #[arg(long, value_name = "SINK")]
+        rerun: Vec<RerunSink>,
+        /// With --rerun: log the camera images every N frames (0: never).
+        #[arg(long, default_value_t = 10, value_name = "N")]
+        rerun_images_every: u64,
     },
     /// Score a tracks.csv against a truth.csv.
     Eval {
@@ -132,6 +140,13 @@ enum Command {
         /// Frames a session may queue before the oldest is dropped.
         #[arg(long, default_value_t = ServerOptions::default().queue_frames)]
         queue_frames: usize,
+        /// Log every session to Rerun: file:DIR (one .rrd per session), connect (a viewer on
+        /// this machine) or connect:URL. Repeat for several.
+        #[arg(long, value_name = "SINK")]
+        rerun: Vec<RerunSink>,
+        /// With --rerun: log the camera images every N frames (0: never).
+        #[arg(long, default_value_t = 0, value_name = "N")]
+        rerun_images_every: u64,
     },
     /// Stream a recording to a server as a headset would; save the vectors; report latency and drops.
     Replay {
@@ -250,10 +265,25 @@ fn run(cli: Cli) -> Result<()> {
             points,
             config,
             method,
+            rerun,
+            rerun_images_every,
         } => {
             let recording = Recording::open(&rec)?;
             let config = load_config(&rec, config.as_deref(), method)?;
             let mut tracks = create_output(&out)?;
+            let logger = if rerun.is_empty() {
+                None
+            } else {
+                let options = RerunOptions {
+                    images_every: rerun_images_every,
+                    ..Default::default()
+                };
+                let name = rec.file_name().map_or_else(
+                    || rec.display().to_string(),
+                    |n| n.to_string_lossy().into_owned(),
+                );
+                Some(RerunLogger::start(&name, &rerun, &recording.rig, &options)?)
+            };
             let mut points_file = points.as_deref().map(create_output).transpose()?;
             let bar = progress_bar(recording.frames.len(), "process");
             let totals = offline::process_recording(
@@ -268,11 +298,28 @@ fn run(cli: Cli) -> Result<()> {
                         (Some(path), Some(file)) => Some(Sink { path, writer: file }),
                         _ => None,
                     },
+                    rerun: logger.as_ref(),
                 },
                 |n| bar.set_position(n as u64),
             )
             .with_context(|| format!("processing {}", rec.display()))?;
             bar.finish_and_clear();
+            if let Some(logger) = logger {
+                let summary = logger.finish();
+                eprintln!(
+                    "rerun: {} frames logged ({} errors) to {}",
+                    summary.frames_logged,
+                    summary.errors,
+                    rerun
+                        .iter()
+                        .map(|s| match s {
+                            RerunSink::File(p) => p.display().to_string(),
+                            RerunSink::Connect(url) => url.clone(),
+                        })
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+            }
             eprintln!(
                 "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough) -> {}; pipeline {:.0} frames/s",
                 totals.frames,
@@ -361,6 +408,8 @@ fn run(cli: Cli) -> Result<()> {
             config,
             method,
             queue_frames,
+            rerun,
+            rerun_images_every,
         } => {
             let config = match config {
                 Some(path) => mrptv::config::load(&path)?,
@@ -374,6 +423,11 @@ fn run(cli: Cli) -> Result<()> {
                 },
                 queue_frames,
                 record_dir: record,
+                rerun: (!rerun.is_empty()).then(|| RerunOptions {
+                    sinks: rerun,
+                    images_every: rerun_images_every,
+                    ..Default::default()
+                }),
                 ..Default::default()
             };
             init_logging("info");

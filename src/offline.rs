@@ -15,6 +15,7 @@ use crate::ptv::{
     FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
 };
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
+use crate::rerun_log::{FrameLog, RerunLogger};
 use crate::synth::{ScenarioSpec, Synthesizer, TruthRow};
 use crate::tables::{self, TrackRow};
 
@@ -165,6 +166,8 @@ fn push_pixels(
 pub struct ProcessSinks<'a> {
     pub tracks: Sink<'a>,
     pub points: Option<Sink<'a>>,
+    /// Every frame is also logged to Rerun.
+    pub rerun: Option<&'a RerunLogger>,
 }
 
 /// Runs a recording through the pipeline, writing `tracks.csv` and optionally `points.csv` rows
@@ -182,6 +185,7 @@ pub fn process_recording(
             writer: tracks,
         },
         mut points,
+        rerun,
     } = sinks;
     let tracks_error = io_error(tracks_path);
     writeln!(tracks, "{}", tables::TRACKS_HEADER).map_err(io_error(tracks_path))?;
@@ -202,6 +206,7 @@ pub fn process_recording(
         });
         for loaded in rx {
             let (entry, (left, right)) = loaded?;
+            let pipeline_s_before = totals.pipeline_s;
             let output = push_pixels(
                 &mut pipeline,
                 &mut totals,
@@ -213,6 +218,14 @@ pub fn process_recording(
             )?;
             for v in &output.vectors {
                 tables::write_track_row(tracks, v).map_err(io_error(tracks_path))?;
+            }
+            if let Some(logger) = rerun {
+                let mut log = FrameLog::from_output(&output, entry.world_from_rig);
+                log.processing_ms = (totals.pipeline_s - pipeline_s_before) * 1e3;
+                if logger.wants_images(totals.frames as u64 - 1) {
+                    log.images = Some((left.into(), right.into()));
+                }
+                logger.log_all(log);
             }
             if let Some(p) = points.as_mut() {
                 for m in &output.points {

@@ -84,6 +84,7 @@ fn offline_tracks(recording: &Recording, config: &PipelineConfig, out: &Path) ->
                 writer: &mut file,
             },
             points: None,
+            rerun: None,
         },
         |_| {},
     )

@@ -123,7 +123,7 @@ impl PipelineConfig {
         }
         // The summed-area tables are i32; 101 keeps every sum far inside that range.
         let box_size = self.detect.box_size_px;
-        if !(3..=101).contains(&box_size) || box_size % 2 == 0 {
+        if !(3..=101).contains(&box_size) || box_size.is_multiple_of(2) {
             return bad("detect.box_size_px", "must be odd and in 3..=101");
         }
         if self.detect.min_area_px > self.detect.max_area_px {

@@ -22,6 +22,7 @@ use crate::protocol::{
 };
 use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
+use crate::rerun_log::{FrameLog, RerunLogger, RerunSink};
 
 /// A frame accepted from the socket, waiting for the pipeline.
 struct QueuedFrame {
@@ -32,6 +33,7 @@ struct QueuedFrame {
     encoding: Encoding,
     left: Bytes,
     right: Bytes,
+    received: Instant,
 }
 
 /// The connection's live session.
@@ -236,6 +238,7 @@ impl Connection {
             queue_frames: self.hub.options.queue_frames.max(1),
             refined_delay_frames: pipeline.config().velocity.half_window_frames,
         };
+        let rerun = self.start_rerun(&id, started_unix_ms, &rig);
         let guard = self.hub.worker();
         let worker = Worker {
             shared: Arc::clone(&shared),
@@ -246,6 +249,8 @@ impl Connection {
             recent_poses: VecDeque::new(),
             queue: Arc::clone(&queue),
             processing_s_total: 0.0,
+            rerun,
+            frames_processed: 0,
         };
         std::thread::Builder::new()
             .name(format!("pipeline-{id}"))
@@ -271,6 +276,40 @@ impl Connection {
             worker_done,
         });
         Ok(())
+    }
+
+    /// The session's Rerun logger, if asked for. A sink that cannot be opened is reported to the
+    /// headset and the log; the session goes on without it.
+    fn start_rerun(&self, id: &str, started_unix_ms: u64, rig: &StereoRig) -> Option<RerunLogger> {
+        let options = self.hub.options.rerun.as_ref()?;
+        let sinks: Vec<RerunSink> = options
+            .sinks
+            .iter()
+            .map(|sink| match sink {
+                RerunSink::File(dir) => {
+                    RerunSink::File(dir.join(format!("{id}-{started_unix_ms}.rrd")))
+                }
+                other => other.clone(),
+            })
+            .collect();
+        for sink in &sinks {
+            if let RerunSink::File(path) = sink {
+                if let Some(dir) = path.parent() {
+                    let _ = std::fs::create_dir_all(dir);
+                }
+            }
+        }
+        match RerunLogger::start(id, &sinks, rig, options) {
+            Ok(logger) => Some(logger),
+            Err(e) => {
+                tracing::error!(session = %id, "{e}");
+                self.send(&ServerMessage::error(
+                    ErrorCode::Internal,
+                    format!("{e}; the session goes on without Rerun logging"),
+                ));
+                None
+            }
+        }
     }
 
     fn on_binary(&mut self, bytes: Bytes) {
@@ -335,6 +374,7 @@ impl Connection {
             encoding: frame.encoding,
             left: bytes.slice_ref(frame.left),
             right: bytes.slice_ref(frame.right),
+            received: Instant::now(),
         };
         shared.counters().frames_received += 1;
         session.last_index.set(Some(index));
@@ -436,6 +476,8 @@ struct Worker {
     recent_poses: VecDeque<(u64, bool)>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
     processing_s_total: f64,
+    rerun: Option<RerunLogger>,
+    frames_processed: u64,
 }
 
 impl Worker {
@@ -447,6 +489,11 @@ impl Worker {
             if let Err(e) = recorder.finish() {
                 self.send_error(ProtocolError::new(ErrorCode::Internal, e));
             }
+        }
+        if let Some(logger) = self.rerun.take() {
+            let summary = logger.finish();
+            tracing::info!(session = %self.shared.id(), logged = summary.frames_logged,
+                dropped = summary.frames_dropped, errors = summary.errors, "rerun log closed");
         }
     }
 
@@ -535,6 +582,14 @@ impl Worker {
         if self.recent_poses.len() > m + 1 {
             self.recent_poses.pop_front();
         }
+        let rerun_log = self.rerun.as_ref().map(|logger| {
+            let mut log = FrameLog::from_output(&output, frame.world_from_rig);
+            log.processing_ms = processing_s * 1e3;
+            if logger.wants_images(self.frames_processed) {
+                log.images = Some((left.to_vec().into(), right.to_vec().into()));
+            }
+            log
+        });
         let causal = PublishedBatch::new(Batch {
             kind: BatchKind::Causal,
             session_number: self.shared.number,
@@ -562,6 +617,12 @@ impl Worker {
         if let Some(r) = &refined {
             sent += self.send_batch(r);
         }
+        let latency_ms = frame.received.elapsed().as_secs_f64() * 1e3;
+        if let (Some(logger), Some(mut log)) = (&self.rerun, rerun_log) {
+            log.latency_ms = Some(latency_ms);
+            logger.log(log);
+        }
+        self.frames_processed += 1;
         let _ = self.events.send(HubEvent::Batch(Arc::new(causal)));
         if let Some(r) = refined {
             let _ = self.events.send(HubEvent::Batch(Arc::new(r)));

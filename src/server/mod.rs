@@ -42,6 +42,7 @@ use crate::protocol::{
     Batch, Convention, Counters, SessionDescription, SessionInfo, PROTOCOL_VERSION,
 };
 use crate::ptv::PipelineConfig;
+use crate::rerun_log::RerunOptions;
 
 /// Everything `mrptv serve` can be told; `Default` gives the documented defaults.
 #[derive(Debug, Clone)]
@@ -56,6 +57,9 @@ pub struct ServerOptions {
     pub viewer_buffer: usize,
     /// Record every session's frames under this directory (`DIR/<session>-<unix ms>/`).
     pub record_dir: Option<PathBuf>,
+    /// Log every session to Rerun; a `File` sink names a directory that receives
+    /// `<session>-<unix ms>.rrd` per session.
+    pub rerun: Option<RerunOptions>,
     pub status_interval: Duration,
     /// Largest WebSocket message accepted, bytes.
     pub max_message_bytes: usize,
@@ -74,6 +78,7 @@ impl Default for ServerOptions {
             headset_buffer: 256,
             viewer_buffer: 1024,
             record_dir: None,
+            rerun: None,
             status_interval: Duration::from_secs(1),
             max_message_bytes: 64 << 20,
             send_timeout: Duration::from_secs(10),
