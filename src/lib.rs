@@ -25,6 +25,8 @@
 //! - [`server`]: `mrptv serve` (axum + tokio). A headset connection hands frames to its session's
 //!   pipeline thread through a bounded drop-oldest queue; the pipeline thread sends the headset
 //!   its [`protocol::Batch`]es, publishes them to viewers and feeds the session's recorder thread.
+//! - [`rerun_log`]: `--rerun` logging of runs and sessions to `.rrd` files, a viewer or a
+//!   served gRPC log, on a logging thread behind a bounded queue.
 //! - [`client`]: the reference headset client (`mrptv replay`, and `serve --demo`'s synthetic
 //!   headset).
 //!

@@ -16,7 +16,7 @@ use mrptv::offline::{self, ProcessSinks, Sink};
 use mrptv::protocol::{Convention, Encoding};
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
-use mrptv::rerun_log::{RerunLogger, RerunOptions, RerunSink};
+use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tables;
@@ -271,6 +271,8 @@ fn run(cli: Cli) -> Result<()> {
             let recording = Recording::open(&rec)?;
             let config = load_config(&rec, config.as_deref(), method)?;
             let mut tracks = create_output(&out)?;
+            let mut rerun = rerun;
+            let proxy = start_proxy(&mut rerun)?;
             let logger = if rerun.is_empty() {
                 None
             } else {
@@ -307,17 +309,22 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(logger) = logger {
                 let summary = logger.finish();
                 eprintln!(
-                    "rerun: {} frames logged ({} errors) to {}",
+                    "rerun: {} frames logged to {}{}",
                     summary.frames_logged,
-                    summary.errors,
                     rerun
                         .iter()
                         .map(|s| match s {
                             RerunSink::File(p) => p.display().to_string(),
                             RerunSink::Connect(url) => url.clone(),
+                            RerunSink::Serve(port) => format!("serve:{port}"),
                         })
                         .collect::<Vec<_>>()
-                        .join(", ")
+                        .join(", "),
+                    if summary.flushed && summary.errors == 0 {
+                        ""
+                    } else {
+                        " (a sink failed: see the warning above; tracks.csv is complete)"
+                    }
                 );
             }
             eprintln!(
@@ -330,6 +337,13 @@ fn run(cli: Cli) -> Result<()> {
                 out.display(),
                 totals.frames as f64 / totals.pipeline_s.max(1e-9)
             );
+            if let Some(proxy) = proxy {
+                println!(
+                    "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",
+                    proxy.url()
+                );
+                runtime()?.block_on(termination());
+            }
         }
         Command::Eval {
             truth,
@@ -431,7 +445,20 @@ fn run(cli: Cli) -> Result<()> {
                 ..Default::default()
             };
             init_logging("info");
+            let mut options = options;
+            // Kept alive while the server runs: one Rerun gRPC server for every session.
+            let proxy = match options.rerun.as_mut() {
+                Some(r) => start_proxy(&mut r.sinks)?,
+                None => None,
+            };
+            if let Some(proxy) = &proxy {
+                println!(
+                    "  rerun: viewers connect with `rerun --connect {}`",
+                    proxy.url()
+                );
+            }
             runtime()?.block_on(serve(bind, options, demo.then_some(demo_scenario)))?;
+            drop(proxy);
         }
         Command::Replay {
             rec,

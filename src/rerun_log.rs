@@ -37,9 +37,73 @@ pub enum RerunSink {
     File(PathBuf),
     /// A running viewer, e.g. `rerun+http://127.0.0.1:9876/proxy` (start one with `rerun`).
     Connect(String),
+    /// Serve the log over gRPC on this port of 127.0.0.1 for viewers to connect to
+    /// (`rerun --connect rerun+http://127.0.0.1:PORT/proxy`); see [`RerunProxy`].
+    Serve(u16),
 }
 
 pub const DEFAULT_VIEWER_URL: &str = "rerun+http://127.0.0.1:9876/proxy";
+pub const DEFAULT_SERVE_PORT: u16 = 9876;
+
+/// A Rerun gRPC server (Rerun's message proxy) on 127.0.0.1, alive as long as this value.
+/// Viewers connect to it; mrptv's recordings are sent to it like to any viewer, so one server
+/// carries every session and keeps their history for viewers that connect later (within its
+/// memory limit, a quarter of RAM by default).
+pub struct RerunProxy {
+    _server: rerun::grpc_server::GrpcServerSink,
+    url: String,
+}
+
+impl RerunProxy {
+    pub fn start(port: u16) -> Result<Self, RerunError> {
+        // The server binds on its own thread, where a failure could only be logged: try first.
+        std::net::TcpListener::bind(("127.0.0.1", port))
+            .map_err(|e| RerunError::Stream(format!("cannot serve on 127.0.0.1:{port}: {e}")))?;
+        let server = rerun::grpc_server::GrpcServerSink::new(
+            "127.0.0.1",
+            port,
+            rerun::ServerOptions::default(),
+        )
+        .map_err(|e| RerunError::Stream(e.to_string()))?;
+        // Serving once it accepts connections, so that logs sent right away are taken.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            if std::time::Instant::now() > deadline {
+                return Err(RerunError::Stream(format!(
+                    "the Rerun gRPC server did not start on 127.0.0.1:{port}"
+                )));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        Ok(Self {
+            _server: server,
+            url: format!("rerun+http://127.0.0.1:{port}/proxy"),
+        })
+    }
+
+    /// For viewers: `rerun --connect URL`.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+}
+
+/// Replaces every `Serve` sink by a connection to one [`RerunProxy`], started here; the proxy
+/// must be kept alive as long as the logs are to be served.
+pub fn start_proxy(sinks: &mut [RerunSink]) -> Result<Option<RerunProxy>, RerunError> {
+    let Some(port) = sinks.iter().find_map(|s| match s {
+        RerunSink::Serve(port) => Some(*port),
+        _ => None,
+    }) else {
+        return Ok(None);
+    };
+    let proxy = RerunProxy::start(port)?;
+    for sink in sinks.iter_mut() {
+        if matches!(sink, RerunSink::Serve(_)) {
+            *sink = RerunSink::Connect(proxy.url().to_string());
+        }
+    }
+    Ok(Some(proxy))
+}
 
 impl std::str::FromStr for RerunSink {
     type Err = String;
@@ -49,8 +113,13 @@ impl std::str::FromStr for RerunSink {
             Some(("file", path)) if !path.is_empty() => Ok(RerunSink::File(path.into())),
             Some(("connect", url)) if !url.is_empty() => Ok(RerunSink::Connect(url.into())),
             None if s == "connect" => Ok(RerunSink::Connect(DEFAULT_VIEWER_URL.into())),
+            None if s == "serve" => Ok(RerunSink::Serve(DEFAULT_SERVE_PORT)),
+            Some(("serve", port)) => port
+                .parse()
+                .map(RerunSink::Serve)
+                .map_err(|_| format!("{s:?}: serve:PORT needs a port number")),
             _ => Err(format!(
-                "{s:?}: expected file:PATH, connect, or connect:URL (e.g. connect:{DEFAULT_VIEWER_URL})"
+                "{s:?}: expected file:PATH, connect, connect:URL (e.g. connect:{DEFAULT_VIEWER_URL}), serve or serve:PORT"
             )),
         }
     }
@@ -139,6 +208,8 @@ impl FrameLog {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct RerunSummary {
     pub frames_logged: u64,
+    /// Every sink took everything (a viewer that never answered makes this false).
+    pub flushed: bool,
     /// Frames dropped because the logging thread was behind.
     pub frames_dropped: u64,
     pub errors: u64,
@@ -181,6 +252,11 @@ impl RerunLogger {
                             error: e.to_string(),
                         })?;
                     boxed.push(Box::new(rerun::sink::GrpcSink::new(uri)));
+                }
+                RerunSink::Serve(port) => {
+                    return Err(RerunError::Stream(format!(
+                        "serve:{port} must be turned into a connection with start_proxy first"
+                    )))
                 }
             }
         }
@@ -536,14 +612,19 @@ impl Scene {
     }
 
     fn finish(self, dropped: u64) -> RerunSummary {
+        let flushed = match self.rec.flush_blocking() {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!("rerun: flushing failed: {e}");
+                false
+            }
+        };
         let summary = RerunSummary {
             frames_logged: self.frames_logged,
+            flushed,
             frames_dropped: dropped,
             errors: self.errors,
         };
-        if let Err(e) = self.rec.flush_blocking() {
-            tracing::warn!("rerun: flushing failed: {e}");
-        }
         // Dropping the stream closes the sinks; a file sink writes its footer then.
         drop(self.rec);
         summary
@@ -574,6 +655,12 @@ mod tests {
             "connect".parse::<RerunSink>(),
             Ok(RerunSink::Connect(DEFAULT_VIEWER_URL.into()))
         );
+        assert_eq!("serve".parse::<RerunSink>(), Ok(RerunSink::Serve(9876)));
+        assert_eq!(
+            "serve:9000".parse::<RerunSink>(),
+            Ok(RerunSink::Serve(9000))
+        );
+        assert!("serve:x".parse::<RerunSink>().is_err());
         assert!("viewer".parse::<RerunSink>().is_err());
         assert!("file:".parse::<RerunSink>().is_err());
     }

@@ -264,3 +264,63 @@ async fn serve_logs_each_session_to_its_own_rrd() {
         assert_eq!(rows(&entities, "/world/rig/left/image@Image"), 4);
     }
 }
+
+/// Runs a recording through `process_recording` logging to `sinks`; the logger's summary.
+fn process_logged(
+    rec: &Recording,
+    sinks: &[RerunSink],
+    out: &Path,
+) -> mrptv::rerun_log::RerunSummary {
+    let logger =
+        mrptv::rerun_log::RerunLogger::start("test", sinks, &rec.rig, &RerunOptions::default())
+            .expect("logger starts");
+    let mut file = std::fs::File::create(out).expect("create");
+    offline::process_recording(
+        rec,
+        ScenarioSpec::new(Scenario::Flume).config,
+        offline::ProcessSinks {
+            tracks: offline::Sink {
+                path: out,
+                writer: &mut file,
+            },
+            points: None,
+            rerun: Some(&logger),
+        },
+        |_| {},
+    )
+    .expect("processing");
+    logger.finish()
+}
+
+#[test]
+fn serve_sink_runs_a_grpc_server_that_takes_the_log() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let rec = synth(&tmp.path().join("rec"), 10);
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let mut sinks = vec![RerunSink::Serve(port)];
+    let proxy = mrptv::rerun_log::start_proxy(&mut sinks)
+        .expect("serves")
+        .expect("a proxy");
+    assert_eq!(
+        sinks,
+        vec![RerunSink::Connect(format!(
+            "rerun+http://127.0.0.1:{port}/proxy"
+        ))]
+    );
+    // The same port cannot be served twice: a clear error, not a silent failure.
+    assert!(mrptv::rerun_log::RerunProxy::start(port).is_err());
+    let summary = process_logged(&rec, &sinks, &tmp.path().join("a.csv"));
+    assert!(
+        summary.flushed,
+        "everything reached the server: {summary:?}"
+    );
+    assert_eq!(summary.frames_logged, 10);
+    drop(proxy);
+    // Nobody there any more: the flush says so, and the run still completes.
+    let summary = process_logged(&rec, &sinks, &tmp.path().join("b.csv"));
+    assert!(!summary.flushed, "{summary:?}");
+    assert_eq!(summary.frames_logged, 10);
+}

@@ -299,6 +299,7 @@ impl Connection {
                 }
             }
         }
+        // `Serve` sinks were turned into connections to one proxy when the server started.
         match RerunLogger::start(id, &sinks, rig, options) {
             Ok(logger) => Some(logger),
             Err(e) => {
