@@ -150,6 +150,12 @@ async fn replay(rec: &Recording, options: &ReplayOptions) -> ReplayReport {
     .expect("replay succeeds")
 }
 
+/// Replays `rec` in the background.
+fn spawn_replay(rec: &Recording, options: ReplayOptions) -> tokio::task::JoinHandle<ReplayReport> {
+    let rec = rec.clone();
+    tokio::spawn(async move { replay(&rec, &options).await })
+}
+
 fn the_only_subdir(dir: &Path) -> PathBuf {
     let dirs: Vec<PathBuf> = std::fs::read_dir(dir)
         .expect("record dir")
@@ -377,14 +383,13 @@ async fn bad_messages_get_clear_errors_and_other_sessions_are_unaffected() {
     let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 40);
     let server = TestServer::start(ServerOptions::default()).await;
     // A well-behaved headset streams alongside throughout, sending PNG files as they are.
-    let good = {
-        let rec = rec.clone();
-        let options = ReplayOptions {
+    let good = spawn_replay(
+        &rec,
+        ReplayOptions {
             encoding: Encoding::Png,
             ..replay_options(server.ingest(), &config)
-        };
-        tokio::spawn(async move { replay(&rec, &options).await })
-    };
+        },
+    );
 
     let mut ws = connect(&server.ingest()).await;
     let (left, right) = rec.load(&rec.frames[0]).expect("frame 0");
@@ -670,10 +675,7 @@ async fn shutdown_processes_queued_frames_says_bye_and_leaves_complete_recording
         max_in_flight: 4,
         ..replay_options(server.ingest(), &config)
     };
-    let streaming = {
-        let rec = rec.clone();
-        tokio::spawn(async move { replay(&rec, &options).await })
-    };
+    let streaming = spawn_replay(&rec, options);
     let mut viewer = connect(&server.watch()).await;
     viewer
         .send(Message::text(r#"{"type":"subscribe","session":"*"}"#))
@@ -774,14 +776,13 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
     let tmp = tempfile::tempdir().expect("tmp");
     let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 150);
     let server = TestServer::start(ServerOptions::default()).await;
-    let streaming = {
-        let rec = rec.clone();
-        let options = ReplayOptions {
+    let streaming = spawn_replay(
+        &rec,
+        ReplayOptions {
             rate: Rate::Recorded,
             ..replay_options(server.ingest(), &config)
-        };
-        tokio::spawn(async move { replay(&rec, &options).await })
-    };
+        },
+    );
     let mut viewer = connect(&server.watch()).await;
     let id = loop {
         viewer
