@@ -207,11 +207,13 @@ pub struct FrameStats {
     pub rejected: usize,
 }
 
-/// A frame as the pipeline saw it: its index and sensor time.
+/// A frame as the pipeline saw it: its index, sensor time, and whether it came with a pose
+/// (its points are then in the world frame, else in the rig frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameRef {
     pub index: u64,
     pub t_s: f64,
+    pub posed: bool,
 }
 
 /// What one frame produced.
@@ -347,6 +349,7 @@ impl Pipeline {
         self.recent_frames.push_back(FrameRef {
             index: frame.index,
             t_s: frame.t_s,
+            posed: frame.world_from_rig.is_some(),
         });
         if self.recent_frames.len() > m + 1 {
             self.recent_frames.pop_front();

@@ -1,7 +1,6 @@
 //! A headset connection (`/v1/ingest`) and its session: connection task, pipeline thread,
 //! recorder thread.
 
-use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::mpsc as std_mpsc;
 use std::sync::Arc;
@@ -246,7 +245,6 @@ impl Connection {
             out: self.out.clone(),
             events: self.hub.events.clone(),
             recorder,
-            recent_poses: VecDeque::new(),
             queue: Arc::clone(&queue),
             processing_s_total: 0.0,
             rerun,
@@ -472,9 +470,6 @@ struct Worker {
     out: mpsc::Sender<Message>,
     events: tokio::sync::broadcast::Sender<HubEvent>,
     recorder: Option<Recorder>,
-    /// Whether each of the last M + 1 frames came with a pose (refined batches describe an
-    /// older frame).
-    recent_poses: VecDeque<(u64, bool)>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
     processing_s_total: f64,
     rerun: Option<RerunLogger>,
@@ -577,12 +572,6 @@ impl Worker {
         };
         let processing_s = started.elapsed().as_secs_f64();
         let processing_us = (processing_s * 1e6).min(u32::MAX as f64) as u32;
-        let m = self.pipeline.config().velocity.half_window_frames;
-        self.recent_poses
-            .push_back((frame.index, frame.world_from_rig.is_some()));
-        if self.recent_poses.len() > m + 1 {
-            self.recent_poses.pop_front();
-        }
         let rerun_log = self.rerun.as_ref().map(|logger| {
             let mut log = FrameLog::from_output(&output, frame.world_from_rig);
             log.processing_ms = processing_s * 1e3;
@@ -607,10 +596,7 @@ impl Worker {
                 session_number: self.shared.number,
                 frame_index: centre.index,
                 t_s: centre.t_s,
-                world: self
-                    .recent_poses
-                    .iter()
-                    .any(|&(index, posed)| index == centre.index && posed),
+                world: centre.posed,
                 processing_us,
                 vectors: output.vectors,
             })
