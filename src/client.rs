@@ -8,6 +8,7 @@
 use std::collections::HashMap;
 use std::future::Future;
 use std::io::Write;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
@@ -236,6 +237,8 @@ pub struct ReplayOptions {
     pub keep_batches: bool,
     /// How long to wait for the server's bye after ours.
     pub finish_timeout: Duration,
+    /// Trust for `wss://` URLs; `None`: the public web roots only.
+    pub tls: Option<Arc<rustls::ClientConfig>>,
 }
 
 impl ReplayOptions {
@@ -250,6 +253,7 @@ impl ReplayOptions {
             config: None,
             keep_batches: true,
             finish_timeout: Duration::from_secs(30),
+            tls: None,
         }
     }
 }
@@ -328,13 +332,21 @@ pub async fn replay(
 ) -> Result<ReplayReport, ClientError> {
     let rig = source.rig().clone();
     // Frames are large and batches small: Nagle's algorithm would hold batches back ~40 ms.
-    let (socket, _) =
-        tokio_tungstenite::connect_async_with_config(options.url.as_str(), None, true)
-            .await
-            .map_err(|error| ClientError::Connect {
-                url: options.url.clone(),
-                error,
-            })?;
+    let connector = options
+        .tls
+        .clone()
+        .map(tokio_tungstenite::Connector::Rustls);
+    let (socket, _) = tokio_tungstenite::connect_async_tls_with_config(
+        options.url.as_str(),
+        None,
+        true,
+        connector,
+    )
+    .await
+    .map_err(|error| ClientError::Connect {
+        url: options.url.clone(),
+        error,
+    })?;
     let (mut sink, mut stream) = socket.split();
     let hello = HeadsetMessage::Hello(Box::new(Hello {
         protocol: PROTOCOL_VERSION,

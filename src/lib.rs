@@ -46,3 +46,4 @@ pub mod rerun_log;
 pub mod server;
 pub mod synth;
 pub mod tables;
+pub mod tls;

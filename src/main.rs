@@ -20,6 +20,7 @@ use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tables;
+use mrptv::tls::{CertificateOrigin, CertificateSource, ServerTls};
 
 #[derive(Parser)]
 #[command(
@@ -147,6 +148,23 @@ enum Command {
         /// With --rerun: log the camera images every N frames (0: never).
         #[arg(long, default_value_t = 0, value_name = "N")]
         rerun_images_every: u64,
+        /// Serve HTTPS and WSS only (browsers give WebXR to secure pages only). Without
+        /// --tls-cert: a self-signed certificate, generated once and kept in --tls-dir.
+        #[arg(long)]
+        tls: bool,
+        /// PEM certificate chain to serve (implies --tls; needs --tls-key).
+        #[arg(long, value_name = "PEM", requires = "tls_key")]
+        tls_cert: Option<PathBuf>,
+        /// PEM private key of --tls-cert.
+        #[arg(long, value_name = "PEM", requires = "tls_cert")]
+        tls_key: Option<PathBuf>,
+        /// Where the self-signed certificate is kept [default: ~/.local/share/mrptv/tls].
+        #[arg(long, value_name = "DIR")]
+        tls_dir: Option<PathBuf>,
+        /// Extra host name or IP address the self-signed certificate must cover (repeatable);
+        /// localhost, this host's name and addresses are always in it.
+        #[arg(long, value_name = "NAME")]
+        tls_name: Vec<String>,
     },
     /// Stream a recording to a server as a headset would; save the vectors; report latency and drops.
     Replay {
@@ -178,6 +196,10 @@ enum Command {
         /// Run this many headsets at once, each streaming the recording on its own connection.
         #[arg(long, default_value_t = 1)]
         headsets: usize,
+        /// For wss:// URLs: also trust the certificates in this PEM file (e.g. a server's
+        /// self-signed cert.pem); the public web roots are always trusted.
+        #[arg(long, value_name = "PEM")]
+        ca_cert: Option<PathBuf>,
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
@@ -424,7 +446,20 @@ fn run(cli: Cli) -> Result<()> {
             queue_frames,
             rerun,
             rerun_images_every,
+            tls,
+            tls_cert,
+            tls_key,
+            tls_dir,
+            tls_name,
         } => {
+            let tls = match (tls_cert, tls_key) {
+                (Some(cert), Some(key)) => Some(CertificateSource::Files { cert, key }),
+                _ if tls => Some(CertificateSource::SelfSigned {
+                    dir: tls_dir.unwrap_or_else(mrptv::tls::default_self_signed_dir),
+                    names: certificate_names(bind, tls_name),
+                }),
+                _ => None,
+            };
             let config = match config {
                 Some(path) => mrptv::config::load(&path)?,
                 None => PipelineConfig::default(),
@@ -457,7 +492,8 @@ fn run(cli: Cli) -> Result<()> {
                     proxy.url()
                 );
             }
-            runtime()?.block_on(serve(bind, options, demo.then_some(demo_scenario)))?;
+            let tls = tls.map(|source| setup_tls(&source)).transpose()?;
+            runtime()?.block_on(serve(bind, options, tls, demo.then_some(demo_scenario)))?;
             drop(proxy);
         }
         Command::Replay {
@@ -471,6 +507,7 @@ fn run(cli: Cli) -> Result<()> {
             causal_out,
             config,
             headsets,
+            ca_cert,
             json,
         } => {
             init_logging("warn");
@@ -491,6 +528,10 @@ fn run(cli: Cli) -> Result<()> {
                 convention,
                 config,
                 keep_batches: out.is_some() || causal_out.is_some(),
+                tls: match &ca_cert {
+                    Some(path) => Some(mrptv::tls::client_config(Some(path))?),
+                    None => None,
+                },
                 ..ReplayOptions::new(url)
             };
             let reports = runtime()?.block_on(replay(&recording, &options, headsets))?;
@@ -563,7 +604,75 @@ async fn termination() {
     }
 }
 
-async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>) -> Result<()> {
+/// Names a self-signed certificate covers: loopback, this host's name (and its mDNS `.local`
+/// name), the bind address or, for a wildcard bind, the address of the default route's
+/// interface, and what the user adds.
+fn certificate_names(bind: SocketAddr, extra: Vec<String>) -> Vec<String> {
+    let mut names = vec!["localhost".to_string(), "127.0.0.1".into(), "::1".into()];
+    if let Some(host) = host_name() {
+        names.push(format!("{host}.local"));
+        names.push(host);
+    }
+    if bind.ip().is_unspecified() {
+        names.extend(lan_address().map(|ip| ip.to_string()));
+    } else {
+        names.push(bind.ip().to_string());
+    }
+    names.extend(extra);
+    let mut seen = std::collections::BTreeSet::new();
+    names.retain(|n| seen.insert(n.clone()));
+    names
+}
+
+fn host_name() -> Option<String> {
+    let name = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .or_else(|| std::env::var("COMPUTERNAME").ok())?;
+    let name = name.trim();
+    (!name.is_empty() && name != "localhost").then(|| name.to_string())
+}
+
+/// The address other devices on the network most likely reach this host at: the source address
+/// of the default route (a UDP "connect" sends nothing).
+fn lan_address() -> Option<std::net::IpAddr> {
+    let socket = std::net::UdpSocket::bind("0.0.0.0:0").ok()?;
+    socket.connect("192.0.2.1:9").ok()?;
+    let ip = socket.local_addr().ok()?.ip();
+    (!ip.is_unspecified() && !ip.is_loopback()).then_some(ip)
+}
+
+fn setup_tls(source: &CertificateSource) -> Result<ServerTls> {
+    let tls = mrptv::tls::server_tls(source)?;
+    match tls.origin {
+        CertificateOrigin::Given => {
+            println!("TLS: certificate {}", tls.cert_path.display())
+        }
+        CertificateOrigin::Generated => println!(
+            "TLS: generated a self-signed certificate {} for {}",
+            tls.cert_path.display(),
+            tls.names.join(", ")
+        ),
+        CertificateOrigin::Reused => println!(
+            "TLS: self-signed certificate {} (for {})",
+            tls.cert_path.display(),
+            tls.names.join(", ")
+        ),
+    }
+    println!("  SHA-256 fingerprint {}", tls.fingerprint);
+    if tls.origin != CertificateOrigin::Given {
+        println!(
+            "  browsers warn about a self-signed certificate: check that the fingerprint they show matches, then accept it"
+        );
+    }
+    Ok(tls)
+}
+
+async fn serve(
+    bind: SocketAddr,
+    mut options: ServerOptions,
+    tls: Option<ServerTls>,
+    demo: Option<Scenario>,
+) -> Result<()> {
     let listener = tokio::net::TcpListener::bind(bind)
         .await
         .with_context(|| format!("cannot listen on {bind}"))?;
@@ -572,13 +681,33 @@ async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>)
     let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|stop| *stop).await;
     };
+    let (http, ws) = if tls.is_some() {
+        ("https", "wss")
+    } else {
+        ("http", "ws")
+    };
+    // The demo headset trusts the server's own certificate.
+    let demo_tls = match &tls {
+        Some(t) => Some(mrptv::tls::client_config(Some(&t.cert_path))?),
+        None => None,
+    };
+    options.tls = tls.map(|t| t.config);
     println!(
-        "mrptv {} listening on http://{addr}",
+        "mrptv {} listening on {http}://{addr}",
         env!("CARGO_PKG_VERSION")
     );
-    println!("  headsets: ws://{addr}/v1/ingest");
-    println!("  viewers:  ws://{addr}/v1/watch");
-    println!("  sessions: http://{addr}/v1/sessions   health: http://{addr}/healthz");
+    println!("  observers: open {http}://{addr}/ in a browser");
+    if addr.ip().is_unspecified() {
+        if let Some(ip) = lan_address() {
+            println!(
+                "             from other devices: {http}://{}/",
+                SocketAddr::new(ip, addr.port())
+            );
+        }
+    }
+    println!("  headsets: {ws}://{addr}/v1/ingest");
+    println!("  viewers:  {ws}://{addr}/v1/watch");
+    println!("  sessions: {http}://{addr}/v1/sessions   health: {http}://{addr}/healthz");
     if let Some(dir) = &options.record_dir {
         println!("  recording every session under {}", dir.display());
     }
@@ -593,7 +722,8 @@ async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>)
             client_name: format!("mrptv demo ({scenario})"),
             config: Some(spec.config.clone()),
             keep_batches: false,
-            ..ReplayOptions::new(format!("ws://{addr}/v1/ingest"))
+            tls: demo_tls,
+            ..ReplayOptions::new(format!("{ws}://{}/v1/ingest", loopback_of(addr)))
         };
         let stop = stop_rx.clone();
         tokio::spawn(async move {
@@ -621,6 +751,15 @@ async fn serve(bind: SocketAddr, options: ServerOptions, demo: Option<Scenario>)
         );
     }
     Ok(())
+}
+
+/// Where a client on this host reaches a server bound to `addr` (a wildcard bind included).
+fn loopback_of(addr: SocketAddr) -> SocketAddr {
+    if addr.ip().is_unspecified() {
+        SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), addr.port())
+    } else {
+        addr
+    }
 }
 
 async fn replay(

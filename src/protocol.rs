@@ -189,6 +189,11 @@ pub enum ViewerMessage {
     },
     Unsubscribe,
     List,
+    /// Answered at once by a `pong` with the same `id`: a browser cannot see WebSocket pings,
+    /// and needs the round trip to estimate latency.
+    Ping {
+        id: u64,
+    },
 }
 
 fn default_viewer_convention() -> Convention {
@@ -302,6 +307,9 @@ pub enum ServerMessage {
         convention: Convention,
     },
     Unsubscribed,
+    Pong {
+        id: u64,
+    },
     SessionEnded {
         session: String,
         counters: Counters,
@@ -405,7 +413,7 @@ pub fn parse_text<T: serde::de::DeserializeOwned>(
 }
 
 pub const HEADSET_TYPES: &[&str] = &["hello", "bye"];
-pub const VIEWER_TYPES: &[&str] = &["subscribe", "unsubscribe", "list"];
+pub const VIEWER_TYPES: &[&str] = &["subscribe", "unsubscribe", "list", "ping"];
 
 /// A decoded frame message; images borrow the message buffer.
 #[derive(Debug, Clone, PartialEq)]
@@ -595,6 +603,10 @@ pub struct Batch {
     pub world: bool,
     /// Pipeline time of the frame whose processing produced this batch, microseconds.
     pub processing_us: u32,
+    /// Server time from that frame's arrival (its last byte read) to this batch being ready to
+    /// send, microseconds: queue wait, decode and pipeline. A viewer adds half its round trip
+    /// (`ping`) to estimate how old what it draws is.
+    pub age_us: u32,
     pub vectors: Vec<VelocityVector>,
 }
 
@@ -614,7 +626,7 @@ impl Batch {
         b.extend_from_slice(&self.frame_index.to_le_bytes());
         b.extend_from_slice(&self.t_s.to_le_bytes());
         b.extend_from_slice(&self.processing_us.to_le_bytes());
-        b.extend_from_slice(&0u32.to_le_bytes());
+        b.extend_from_slice(&self.age_us.to_le_bytes());
         let mut flags = 0;
         if self.kind == BatchKind::Refined {
             flags |= VECTOR_FLAG_REFINED;
@@ -663,6 +675,7 @@ pub struct DecodedBatch {
     pub frame_index: u64,
     pub t_s: f64,
     pub processing_us: u32,
+    pub age_us: u32,
     pub vectors: Vec<WireVector>,
 }
 
@@ -715,6 +728,7 @@ pub fn decode_batch(b: &[u8]) -> Result<DecodedBatch, ProtocolError> {
         frame_index: read_u64(b, 16),
         t_s: read_f64(b, 24),
         processing_us: read_u32(b, 32),
+        age_us: read_u32(b, 36),
         vectors,
     })
 }
@@ -807,6 +821,7 @@ mod tests {
             t_s: 0.5,
             world: true,
             processing_us: 1234,
+            age_us: 5678,
             vectors: vec![v, v],
         };
         let bytes = batch.encode(Convention::WebXr);
@@ -817,6 +832,7 @@ mod tests {
         assert_eq!(back.vectors[0].position_m, [0.1, -0.2, -1.5]);
         assert!(back.vectors[0].refined());
         assert_eq!(back.processing_us, 1234);
+        assert_eq!(back.age_us, 5678);
         assert!(decode_batch(&bytes[..bytes.len() - 1]).is_err());
     }
 

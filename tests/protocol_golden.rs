@@ -113,6 +113,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
     );
     g.insert("viewer-unsubscribe.json", json(&ViewerMessage::Unsubscribe));
     g.insert("viewer-list.json", json(&ViewerMessage::List));
+    g.insert("viewer-ping.json", json(&ViewerMessage::Ping { id: 17 }));
     g.insert(
         "server-welcome.json",
         json(&ServerMessage::Welcome {
@@ -193,6 +194,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         "server-unsubscribed.json",
         json(&ServerMessage::Unsubscribed),
     );
+    g.insert("server-pong.json", json(&ServerMessage::Pong { id: 17 }));
     g.insert(
         "server-session_ended.json",
         json(&ServerMessage::SessionEnded {
@@ -236,6 +238,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         t_s: 1.4,
         world,
         processing_us: 2100,
+        age_us: 3400,
         vectors,
     };
     g.insert(
@@ -383,7 +386,11 @@ fn frame_bytes_sit_where_the_spec_says() {
         f64::from_le_bytes(batch[24..32].try_into().expect("8")),
         1.4
     );
-    assert_eq!(&batch[36..40], &[0, 0, 0, 0], "reserved");
+    assert_eq!(
+        u32::from_le_bytes(batch[36..40].try_into().expect("4")),
+        3400,
+        "age_us"
+    );
     assert_eq!(
         u32::from_le_bytes(batch[32..36].try_into().expect("4")),
         2100

@@ -820,6 +820,26 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
         (batch.session_number, batch.convention),
         (1, Convention::OpenCv)
     );
+    // age_us covers queue wait, decode and pipeline, so it is at least the pipeline time.
+    assert!(
+        batch.age_us >= batch.processing_us && batch.age_us > 0,
+        "age {} us, processing {} us",
+        batch.age_us,
+        batch.processing_us
+    );
+    // A ping is answered with its id, between batches.
+    viewer
+        .send(Message::text(
+            r#"{"type":"ping","id":18446744073709551615}"#,
+        ))
+        .await
+        .expect("pings");
+    loop {
+        if let ServerMessage::Pong { id } = next_text(&mut viewer).await {
+            assert_eq!(id, u64::MAX);
+            break;
+        }
+    }
     let info = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
     assert!(info.contains(r#""viewers":1"#), "{info}");
     viewer

@@ -580,6 +580,7 @@ impl Worker {
             }
             log
         });
+        let age_us = (frame.received.elapsed().as_secs_f64() * 1e6).min(u32::MAX as f64) as u32;
         let causal = PublishedBatch::new(Batch {
             kind: BatchKind::Causal,
             session_number: self.shared.number,
@@ -587,6 +588,7 @@ impl Worker {
             t_s: output.t_s,
             world: frame.world_from_rig.is_some(),
             processing_us,
+            age_us,
             vectors: output.causal_vectors,
         });
         let mut sent = self.send_batch(&causal);
@@ -598,6 +600,7 @@ impl Worker {
                 t_s: centre.t_s,
                 world: centre.posed,
                 processing_us,
+                age_us,
                 vectors: output.vectors,
             })
         });

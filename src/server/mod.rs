@@ -20,7 +20,9 @@
 
 mod ingest;
 pub mod queue;
+mod tls_listener;
 mod watch;
+mod web;
 
 use std::collections::BTreeMap;
 use std::future::Future;
@@ -31,7 +33,7 @@ use std::time::Duration;
 
 use axum::body::Bytes;
 use axum::extract::{State, WebSocketUpgrade};
-use axum::response::{Html, IntoResponse};
+use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::serve::ListenerExt;
 use axum::{Json, Router};
@@ -68,6 +70,10 @@ pub struct ServerOptions {
     /// How long shutdown waits for connections to close. Sessions' frames are processed and
     /// their recordings completed whatever this is.
     pub drain_timeout: Duration,
+    /// Serve HTTPS/WSS only (`mrptv serve --tls`); plain HTTP/WS when `None`.
+    pub tls: Option<Arc<rustls::ServerConfig>>,
+    /// A TLS client that has not finished its handshake within this is disconnected.
+    pub tls_handshake_timeout: Duration,
 }
 
 impl Default for ServerOptions {
@@ -83,6 +89,8 @@ impl Default for ServerOptions {
             max_message_bytes: 64 << 20,
             send_timeout: Duration::from_secs(10),
             drain_timeout: Duration::from_secs(10),
+            tls: None,
+            tls_handshake_timeout: Duration::from_secs(10),
         }
     }
 }
@@ -292,6 +300,10 @@ pub async fn run(
 ) -> std::io::Result<ShutdownReport> {
     let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
     let drain_timeout = options.drain_timeout;
+    let tls = options
+        .tls
+        .clone()
+        .map(|config| (config, options.tls_handshake_timeout));
     let hub = Arc::new(Hub::new(options, shutdown_rx));
     let app = router(Arc::clone(&hub));
     let signal = async move {
@@ -299,15 +311,20 @@ pub async fn run(
         tracing::info!("shutting down: closing sessions");
         let _ = shutdown_tx.send(true);
     };
-    // Batches are small and latency-critical: no Nagle delay.
-    let listener = listener.tap_io(|tcp| {
-        if let Err(e) = tcp.set_nodelay(true) {
-            tracing::warn!("cannot set TCP_NODELAY: {e}");
+    match tls {
+        Some((config, handshake_timeout)) => {
+            let listener = tls_listener::TlsListener::new(listener, config, handshake_timeout)?;
+            axum::serve(listener, app)
+                .with_graceful_shutdown(signal)
+                .await?;
         }
-    });
-    axum::serve(listener, app)
-        .with_graceful_shutdown(signal)
-        .await?;
+        None => {
+            let listener = listener.tap_io(|tcp| set_nodelay(tcp));
+            axum::serve(listener, app)
+                .with_graceful_shutdown(signal)
+                .await?;
+        }
+    }
     // Upgraded WebSocket connections outlive axum's own connection tracking: wait for them.
     let drained = tokio::time::timeout(
         drain_timeout,
@@ -337,7 +354,9 @@ pub async fn run(
 
 fn router(hub: Arc<Hub>) -> Router {
     Router::new()
-        .route("/", get(index))
+        .route("/", get(web::index))
+        .route("/app/{*path}", get(web::app))
+        .route("/vendor/{*path}", get(web::vendor))
         .route("/healthz", get(healthz))
         .route("/v1/sessions", get(sessions))
         .route("/v1/ingest", get(ingest_upgrade))
@@ -389,18 +408,11 @@ async fn sessions(State(hub): State<Arc<Hub>>) -> Json<Sessions> {
     })
 }
 
-async fn index() -> Html<&'static str> {
-    Html(concat!(
-        "<!doctype html><meta charset=utf-8><title>mrptv</title>",
-        "<h1>mrptv ",
-        env!("CARGO_PKG_VERSION"),
-        "</h1><ul>",
-        "<li>headsets: WebSocket <code>/v1/ingest</code></li>",
-        "<li>viewers: WebSocket <code>/v1/watch</code></li>",
-        "<li><a href=/v1/sessions>/v1/sessions</a> (JSON)</li>",
-        "<li><a href=/healthz>/healthz</a></li></ul>",
-        "<p>The protocol is specified in <code>protocol/README.md</code>.</p>"
-    ))
+/// Batches are small and latency-critical: no Nagle delay.
+fn set_nodelay(tcp: &tokio::net::TcpStream) {
+    if let Err(e) = tcp.set_nodelay(true) {
+        tracing::warn!("cannot set TCP_NODELAY: {e}");
+    }
 }
 
 /// Milliseconds since the Unix epoch, for session start times and recording names.

@@ -189,6 +189,7 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
         ViewerMessage::List => ServerMessage::Sessions {
             sessions: hub.session_list(),
         },
+        ViewerMessage::Ping { id } => ServerMessage::Pong { id },
         ViewerMessage::Unsubscribe => {
             viewer.set(None);
             ServerMessage::Unsubscribed
@@ -232,6 +233,7 @@ mod tests {
             t_s: frame_index as f64,
             world: false,
             processing_us: 0,
+            age_us: 0,
             vectors: Vec::new(),
         })))
     }

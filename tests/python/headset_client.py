@@ -25,7 +25,7 @@ from websockets.sync.client import connect
 
 FRAME_HDR = struct.Struct("<4sBBHQdII")     # 32 bytes: magic, version, encoding, flags, index, t_s, lens
 BATCH_HDR = struct.Struct("<4sBBBBIIQdII")  # 40 bytes: magic, version, kind, convention, flags, session,
-                                            #           count, frame_index, t_s, processing_us, reserved
+                                            #           count, frame_index, t_s, processing_us, age_us
 RECORD = struct.Struct("<Q3f3ffHH")         # 40 bytes: track_id, x y z, u v w, residual, flags, reserved
 POSE = struct.Struct("<16d")
 CONVENTIONS = {"opencv": (0, (1, 1, 1)), "unity": (1, (1, -1, 1)), "webxr": (2, (1, -1, -1))}
@@ -100,10 +100,10 @@ def decode_frame(data, what="frame"):
 
 
 def decode_batch(data, convention=None, session=None, what="batch"):
-    """Decode a vector batch; checks magic, version, kind, convention, length, flags, reserved."""
+    """Decode a vector batch; checks magic, version, kind, convention, length, flags, age, reserved."""
     if len(data) < BATCH_HDR.size:
         raise Failure(f"{what}: {len(data)} bytes, shorter than the 40-byte header")
-    magic, version, kind, conv, flags, sess, count, index, t_s, proc_us, reserved = BATCH_HDR.unpack_from(data)
+    magic, version, kind, conv, flags, sess, count, index, t_s, proc_us, age_us = BATCH_HDR.unpack_from(data)
     bad = []
     if magic != b"MRPV": bad.append(f"magic {magic!r}")
     if version != 1: bad.append(f"version {version}")
@@ -113,7 +113,7 @@ def decode_batch(data, convention=None, session=None, what="batch"):
     if session is not None and sess != session: bad.append(f"session number {sess} (welcome: {session})")
     if len(data) != BATCH_HDR.size + RECORD.size * count: bad.append(f"{len(data)} bytes for {count} records")
     if not math.isfinite(t_s): bad.append(f"t_s {t_s}")
-    if reserved: bad.append(f"reserved header bytes {reserved}")
+    if age_us < proc_us: bad.append(f"age_us {age_us} < processing_us {proc_us} (age includes processing)")
     if bad:
         raise Failure(f"{what}: malformed ({'; '.join(bad)})")
     world = flags & 1
