@@ -11,6 +11,8 @@ use tokio::task::JoinHandle;
 use tokio_rustls::server::TlsStream;
 use tokio_rustls::TlsAcceptor;
 
+const MAX_HANDSHAKES: usize = 256;
+
 pub(super) struct TlsListener {
     accepted: mpsc::Receiver<(TlsStream<TcpStream>, SocketAddr)>,
     local: SocketAddr,
@@ -26,8 +28,14 @@ impl TlsListener {
         let local = tcp.local_addr()?;
         let (ready, accepted) = mpsc::channel(64);
         let acceptor = TlsAcceptor::from(config);
+        // Handshakes in progress at once; past this, connections wait in the kernel's backlog,
+        // so a flood of clients that never finish their handshake costs bounded memory.
+        let handshakes = Arc::new(tokio::sync::Semaphore::new(MAX_HANDSHAKES));
         let acceptor_task = tokio::spawn(async move {
             loop {
+                let Ok(permit) = Arc::clone(&handshakes).acquire_owned().await else {
+                    return;
+                };
                 let (stream, peer) = match tcp.accept().await {
                     Ok(c) => c,
                     Err(e) => {
@@ -41,6 +49,7 @@ impl TlsListener {
                 let acceptor = acceptor.clone();
                 let ready = ready.clone();
                 tokio::spawn(async move {
+                    let _permit = permit;
                     match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
                         Ok(Ok(tls)) => {
                             let _ = ready.send((tls, peer)).await;

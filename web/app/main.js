@@ -163,6 +163,7 @@ function connect() {
   socket.onclose = () => {
     state.socket = null;
     state.subscribed = null;
+    state.pingSentAt.clear();
     state.connection = `reconnecting in ${(state.reconnectDelayMs / 1000).toFixed(0)} s`;
     setTimeout(connect, state.reconnectDelayMs);
     state.reconnectDelayMs = Math.min(state.reconnectDelayMs * 2, 10000);
@@ -174,9 +175,12 @@ function send(message) {
 }
 
 function ping() {
+  if (state.socket?.readyState !== WebSocket.OPEN) return;
   const id = state.nextPing++;
   state.pingSentAt.set(id, performance.now());
   send({ type: 'ping', id });
+  // A pong that never came (a reconnect in between) is not waited for forever.
+  for (const old of state.pingSentAt.keys()) if (old < id - 10) state.pingSentAt.delete(old);
 }
 setInterval(ping, 1000);
 
@@ -210,6 +214,7 @@ function onText(text) {
     case 'session_ended': {
       const n = sessionNumber(msg.session);
       state.latest.delete(n);
+      for (const key of state.trails.keys()) if (key.startsWith(`${n}:`)) state.trails.delete(key);
       state.dirty = true;
       break;
     }
