@@ -502,6 +502,8 @@ $('recentre').addEventListener('click', () => {
 
 // WebXR: a button per mode, shown only where the browser says the mode is supported.
 async function offerXr() {
+  // Browsers hide WebXR from pages that are not secure contexts (http from another device).
+  $('xr-hint').hidden = window.isSecureContext;
   if (!navigator.xr) return;
   for (const [mode, id] of [['immersive-vr', 'enter-vr'], ['immersive-ar', 'enter-ar']]) {
     let supported = false;

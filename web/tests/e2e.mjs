@@ -108,6 +108,7 @@ try {
     // Chromium without an XR device: no buttons offering what cannot work.
     assert.equal(await page.isVisible('#enter-vr'), false, 'Enter VR hidden without WebXR support');
     assert.equal(await page.isVisible('#enter-ar'), false, 'Enter AR hidden without WebXR support');
+    assert.equal(await page.isVisible('#xr-hint'), false, 'no https hint on a secure page');
     const pixels = await page.evaluate(() => window.mrptv.probePixels());
     assert.ok(pixels.coloured > 500, `arrows on screen: ${JSON.stringify(pixels)}`);
     // Pause freezes the picture while data keeps arriving.
