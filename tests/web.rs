@@ -228,23 +228,13 @@ fn page_unit_tests_pass_and_vendored_three_is_the_pinned_package() {
     assert_success("node --test web/tests/unit.test.mjs", &unit);
     let vendored = node(&["scripts/vendor.mjs", "--check"]);
     assert_success("web/scripts/vendor.mjs --check", &vendored);
-    let pinned = std::fs::read_to_string(web().join("package.json")).expect("package.json");
-    let vendored_pkg =
-        std::fs::read_to_string(web().join("vendor/three/package.json")).expect("vendored");
-    let version = |text: &str| {
-        text.split("\"version\": \"")
-            .nth(1)
-            .and_then(|v| v.split('"').next())
-            .map(str::to_string)
+    let json = |path: PathBuf| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(&path).expect("readable")).expect("JSON")
     };
-    let pinned_three = pinned
-        .split("\"three\": \"")
-        .nth(1)
-        .and_then(|v| v.split('"').next())
-        .map(str::to_string);
+    let pinned = json(web().join("package.json"));
+    let vendored = json(web().join("vendor/three/package.json"));
     assert_eq!(
-        pinned_three,
-        version(&vendored_pkg),
+        pinned["devDependencies"]["three"], vendored["version"],
         "web/package.json pins the vendored three"
     );
 }
