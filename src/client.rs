@@ -14,6 +14,8 @@ use std::time::{Duration, Instant};
 use futures_util::{SinkExt, StreamExt};
 use nalgebra::Isometry3;
 use tokio::sync::mpsc;
+use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::http::header::{HeaderValue, AUTHORIZATION};
 use tokio_tungstenite::tungstenite::Message;
 
 use crate::geometry::StereoRig;
@@ -239,6 +241,8 @@ pub struct ReplayOptions {
     pub finish_timeout: Duration,
     /// Trust for `wss://` URLs; `None`: the public web roots only.
     pub tls: Option<Arc<rustls::ClientConfig>>,
+    /// The server's ingest secret, sent as `Authorization: Bearer`.
+    pub secret: Option<String>,
 }
 
 impl ReplayOptions {
@@ -254,6 +258,7 @@ impl ReplayOptions {
             keep_batches: true,
             finish_timeout: Duration::from_secs(30),
             tls: None,
+            secret: None,
         }
     }
 }
@@ -277,6 +282,9 @@ pub struct ReplayReport {
     /// From the server's bye (or its last status).
     pub counters: Option<Counters>,
     pub bye_reason: Option<String>,
+    /// With a recording server: the last frame it said is on disk (`recorded`), and how many.
+    pub recorded_through: Option<u64>,
+    pub frames_recorded: u64,
     /// First frame sent to last message received, seconds.
     pub elapsed_s: f64,
 }
@@ -322,6 +330,18 @@ fn spawn_source(mut source: impl FrameSource) -> mpsc::Receiver<Result<SourceFra
     rx
 }
 
+/// The protocol error an HTTP refusal of the upgrade carries (a wrong secret: 401).
+fn refusal(error: &tokio_tungstenite::tungstenite::Error) -> Option<ClientError> {
+    let tokio_tungstenite::tungstenite::Error::Http(response) = error else {
+        return None;
+    };
+    let body = response.body().as_deref()?;
+    match serde_json::from_slice::<ServerMessage>(body).ok()? {
+        ServerMessage::Error { code, message, .. } => Some(ClientError::Refused { code, message }),
+        _ => None,
+    }
+}
+
 /// Streams `source` to the server at `options.url` until it ends or `stop` resolves, then says
 /// bye and waits for the server's. `progress` gets the number of frames sent.
 pub async fn replay(
@@ -336,17 +356,28 @@ pub async fn replay(
         .tls
         .clone()
         .map(tokio_tungstenite::Connector::Rustls);
-    let (socket, _) = tokio_tungstenite::connect_async_tls_with_config(
-        options.url.as_str(),
-        None,
-        true,
-        connector,
-    )
-    .await
-    .map_err(|error| ClientError::Connect {
-        url: options.url.clone(),
-        error,
-    })?;
+    let mut request = options
+        .url
+        .as_str()
+        .into_client_request()
+        .map_err(|error| ClientError::Connect {
+            url: options.url.clone(),
+            error,
+        })?;
+    if let Some(secret) = &options.secret {
+        let value = HeaderValue::from_str(&format!("Bearer {secret}"))
+            .map_err(|_| ClientError::Protocol("the secret must be printable ASCII".into()))?;
+        request.headers_mut().insert(AUTHORIZATION, value);
+    }
+    let (socket, _) =
+        tokio_tungstenite::connect_async_tls_with_config(request, None, true, connector)
+            .await
+            .map_err(|error| {
+                refusal(&error).unwrap_or(ClientError::Connect {
+                    url: options.url.clone(),
+                    error,
+                })
+            })?;
     let (mut sink, mut stream) = socket.split();
     let hello = HeadsetMessage::Hello(Box::new(Hello {
         protocol: PROTOCOL_VERSION,
@@ -449,6 +480,14 @@ pub async fn replay(
                     }
                 }
                 Ok(ServerMessage::Status { counters, .. }) => report.counters = Some(counters),
+                Ok(ServerMessage::Recorded {
+                    through_frame_index,
+                    frames_recorded,
+                    ..
+                }) => {
+                    report.recorded_through = Some(through_frame_index);
+                    report.frames_recorded = frames_recorded;
+                }
                 Ok(ServerMessage::Bye { reason, counters }) => {
                     report.bye_reason = Some(reason);
                     if counters.is_some() {

@@ -29,21 +29,29 @@
 //!   served gRPC log, on a logging thread behind a bounded queue.
 //! - [`client`]: the reference headset client (`mrptv replay`, and `serve --demo`'s synthetic
 //!   headset).
+//! - [`load`]: `mrptv load`, a bounded load test of a `serve` child process on loopback.
 //!
 //! Threads: offline, everything runs on the caller's thread (the reader decodes PNGs one frame
 //! ahead on a helper thread). Live, the tokio runtime runs the sockets; each session's pipeline
 //! and recorder have their own OS threads, so CPU-bound work never stalls the network.
 
+#[cfg(feature = "service")]
 pub mod client;
 pub mod config;
 pub mod eval;
 pub mod geometry;
+#[cfg(feature = "service")]
+pub mod load;
+#[cfg(feature = "service")]
 pub mod offline;
 pub mod protocol;
 pub mod ptv;
 pub mod recording;
+#[cfg(feature = "service")]
 pub mod rerun_log;
+#[cfg(feature = "service")]
 pub mod server;
 pub mod synth;
 pub mod tables;
+#[cfg(feature = "service")]
 pub mod tls;

@@ -41,6 +41,90 @@ fn scenario_help() -> String {
         .join("\n")
 }
 
+/// Access control and limits of `serve` (defaults: `ServerOptions::default()`).
+#[derive(clap::Args)]
+#[command(next_help_heading = "Access and limits")]
+struct GuardArgs {
+    /// Secret headsets must present (Authorization: Bearer, or ?token=). Prefer the environment
+    /// variable: command lines are visible to other users of this machine.
+    #[arg(
+        long,
+        env = "MRPTV_INGEST_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    ingest_secret: Option<String>,
+    /// Secret viewers (the observer page: ?token=SECRET) and /v1/sessions must present.
+    #[arg(
+        long,
+        env = "MRPTV_WATCH_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    watch_secret: Option<String>,
+    /// Connections open at once; more are closed on accept.
+    #[arg(long, default_value_t = ServerOptions::default().max_connections, value_name = "N")]
+    max_connections: usize,
+    /// Live sessions at once.
+    #[arg(long, default_value_t = ServerOptions::default().max_sessions, value_name = "N")]
+    max_sessions: usize,
+    /// Viewers per session.
+    #[arg(long, default_value_t = ServerOptions::default().max_viewers_per_session, value_name = "N")]
+    max_viewers: usize,
+    /// Largest image width or height, pixels.
+    #[arg(long, default_value_t = ServerOptions::default().max_image_side, value_name = "PIXELS")]
+    max_image_size: u32,
+    /// Frames per second a session takes (bursts of one second's worth pass); 0: no limit.
+    #[arg(long, default_value_t = ServerOptions::default().max_frame_rate_hz, value_name = "HZ")]
+    max_frame_rate: f64,
+    /// Largest WebSocket message, MiB (a raw8 stereo frame of 640x480 is 0.6 MiB).
+    #[arg(long, default_value_t = ServerOptions::default().max_message_bytes >> 20, value_name = "MIB")]
+    max_message_mib: usize,
+    /// Seconds a client has for its TLS handshake, its HTTP request, and a headset its hello.
+    #[arg(long, default_value_t = ServerOptions::default().handshake_timeout.as_secs_f64(), value_name = "S")]
+    handshake_timeout: f64,
+    /// Seconds of silence (not even a pong to the server's pings) before a connection is closed.
+    #[arg(long, default_value_t = ServerOptions::default().idle_timeout.as_secs_f64(), value_name = "S")]
+    idle_timeout: f64,
+}
+
+impl GuardArgs {
+    fn apply(self, options: &mut ServerOptions) -> Result<()> {
+        let seconds = |what: &str, s: f64| {
+            if s.is_finite() && s > 0.0 && s < 1e6 {
+                Ok(std::time::Duration::from_secs_f64(s))
+            } else {
+                bail!("--{what} must be a positive number of seconds, not {s}")
+            }
+        };
+        if !(self.max_frame_rate.is_finite() && self.max_frame_rate >= 0.0) {
+            bail!(
+                "--max-frame-rate must be 0 (no limit) or a positive rate, not {}",
+                self.max_frame_rate
+            );
+        }
+        if self.max_message_mib == 0 || self.max_message_mib > 1024 {
+            bail!(
+                "--max-message-mib must be 1 to 1024, not {}",
+                self.max_message_mib
+            );
+        }
+        options.access = server::access::AccessControl::new(
+            self.ingest_secret.as_deref(),
+            self.watch_secret.as_deref(),
+        )?;
+        options.max_connections = self.max_connections;
+        options.max_sessions = self.max_sessions;
+        options.max_viewers_per_session = self.max_viewers;
+        options.max_image_side = self.max_image_size;
+        options.max_frame_rate_hz = self.max_frame_rate;
+        options.max_message_bytes = self.max_message_mib << 20;
+        options.handshake_timeout = seconds("handshake-timeout", self.handshake_timeout)?;
+        options.idle_timeout = seconds("idle-timeout", self.idle_timeout)?;
+        Ok(())
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Write a synthetic recording with ground truth (OUT/truth.csv) and a suggested OUT/mrptv.toml.
@@ -165,6 +249,8 @@ enum Command {
         /// localhost, this host's name and addresses are always in it.
         #[arg(long, value_name = "NAME")]
         tls_name: Vec<String>,
+        #[command(flatten)]
+        guard: GuardArgs,
     },
     /// Stream a recording to a server as a headset would; save the vectors; report latency and drops.
     Replay {
@@ -203,6 +289,42 @@ enum Command {
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
+        /// The server's ingest secret (see `serve --ingest-secret`).
+        #[arg(
+            long,
+            env = "MRPTV_INGEST_SECRET",
+            hide_env_values = true,
+            value_name = "SECRET"
+        )]
+        secret: Option<String>,
+    },
+    /// Load-test `serve` on this machine: a server on 127.0.0.1, N synthetic headsets and M
+    /// viewers for a while; reports frames processed and dropped, latency and server memory.
+    Load {
+        /// Headsets streaming at once.
+        #[arg(long, default_value_t = 1)]
+        headsets: usize,
+        /// Viewers subscribed to every session.
+        #[arg(long, default_value_t = 0)]
+        viewers: usize,
+        /// Stop after this many seconds.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Or once each headset has sent this many frames.
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Frames per second per headset, or "max" (as fast as answered, 2 in flight).
+        #[arg(long, default_value = "30")]
+        rate: Rate,
+        /// Scenario the headsets stream.
+        #[arg(long, default_value = "flume")]
+        scenario: Scenario,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+        /// Further `serve` arguments, after `--` (e.g. -- --record DIR).
+        #[arg(last = true)]
+        serve_args: Vec<String>,
     },
     /// Print the default processing config as TOML (every key, with mrptv's defaults).
     Config {
@@ -451,6 +573,7 @@ fn run(cli: Cli) -> Result<()> {
             tls_key,
             tls_dir,
             tls_name,
+            guard,
         } => {
             let tls = match (tls_cert, tls_key) {
                 (Some(cert), Some(key)) => Some(CertificateSource::Files { cert, key }),
@@ -481,6 +604,11 @@ fn run(cli: Cli) -> Result<()> {
             };
             init_logging("info");
             let mut options = options;
+            let secrets = Secrets {
+                ingest: guard.ingest_secret.clone(),
+                watch: guard.watch_secret.is_some(),
+            };
+            guard.apply(&mut options)?;
             // Kept alive while the server runs: one Rerun gRPC server for every session.
             let proxy = match options.rerun.as_mut() {
                 Some(r) => start_proxy(&mut r.sinks)?,
@@ -493,7 +621,13 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             let tls = tls.map(|source| setup_tls(&source)).transpose()?;
-            runtime()?.block_on(serve(bind, options, tls, demo.then_some(demo_scenario)))?;
+            runtime()?.block_on(serve(
+                bind,
+                options,
+                tls,
+                demo.then_some(demo_scenario),
+                secrets,
+            ))?;
             drop(proxy);
         }
         Command::Replay {
@@ -509,6 +643,7 @@ fn run(cli: Cli) -> Result<()> {
             headsets,
             ca_cert,
             json,
+            secret,
         } => {
             init_logging("warn");
             let recording = Recording::open(&rec)?;
@@ -532,6 +667,7 @@ fn run(cli: Cli) -> Result<()> {
                     Some(path) => Some(mrptv::tls::client_config(Some(path))?),
                     None => None,
                 },
+                secret,
                 ..ReplayOptions::new(url)
             };
             let reports = runtime()?.block_on(replay(&recording, &options, headsets))?;
@@ -549,6 +685,52 @@ fn run(cli: Cli) -> Result<()> {
                 }
             }
             print_replay(&reports, json)?;
+        }
+        Command::Load {
+            headsets,
+            viewers,
+            seconds,
+            frames,
+            rate,
+            scenario,
+            json,
+            serve_args,
+        } => {
+            if headsets == 0 {
+                bail!("--headsets must be at least 1");
+            }
+            if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
+                bail!("--seconds must be between 0 and 86400, not {seconds}");
+            }
+            init_logging("warn");
+            let options = mrptv::load::LoadOptions {
+                headsets,
+                viewers,
+                duration: std::time::Duration::from_secs_f64(seconds),
+                frames_per_headset: frames,
+                rate,
+                scenario,
+                ring_frames: 90,
+                server_exe: std::env::current_exe().context("where is this mrptv binary?")?,
+                server_args: serve_args,
+            };
+            let bar = ProgressBar::new(seconds.ceil() as u64);
+            bar.set_style(
+                ProgressStyle::with_template("{msg:>14} [{bar:40}] {pos}/{len} s")
+                    .unwrap_or_else(|_| ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+            );
+            bar.set_message("load");
+            let report = runtime()?.block_on(mrptv::load::run(&options, |elapsed, sent| {
+                bar.set_position(elapsed as u64);
+                bar.set_message(format!("{sent} frames"));
+            }))?;
+            bar.finish_and_clear();
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                print_load(&report);
+            }
         }
         Command::Config { method } => {
             let config = if method {
@@ -667,11 +849,19 @@ fn setup_tls(source: &CertificateSource) -> Result<ServerTls> {
     Ok(tls)
 }
 
+/// What the banner and the demo headset need to know of the secrets.
+struct Secrets {
+    /// The demo headset presents it.
+    ingest: Option<String>,
+    watch: bool,
+}
+
 async fn serve(
     bind: SocketAddr,
     mut options: ServerOptions,
     tls: Option<ServerTls>,
     demo: Option<Scenario>,
+    secrets: Secrets,
 ) -> Result<()> {
     let listener = tokio::net::TcpListener::bind(bind)
         .await
@@ -692,18 +882,29 @@ async fn serve(
         None => None,
     };
     options.tls = tls.map(|t| t.config);
+    for warning in server::access::exposure_warnings(addr, &options.access, options.tls.is_some()) {
+        eprintln!("warning: {warning}");
+    }
     println!(
         "mrptv {} listening on {http}://{addr}",
         env!("CARGO_PKG_VERSION")
     );
-    println!("  observers: open {http}://{addr}/ in a browser");
+    let token = if secrets.watch {
+        "?token=WATCH_SECRET"
+    } else {
+        ""
+    };
+    println!("  observers: open {http}://{addr}/{token} in a browser");
     if addr.ip().is_unspecified() {
         if let Some(ip) = lan_address() {
             println!(
-                "             from other devices: {http}://{}/",
+                "             from other devices: {http}://{}/{token}",
                 SocketAddr::new(ip, addr.port())
             );
         }
+    }
+    if options.access.requires(server::access::Role::Ingest) {
+        println!("  headsets present the ingest secret (Authorization: Bearer, or ?token=)");
     }
     println!("  headsets: {ws}://{addr}/v1/ingest");
     println!("  viewers:  {ws}://{addr}/v1/watch");
@@ -723,6 +924,7 @@ async fn serve(
             config: Some(spec.config.clone()),
             keep_batches: false,
             tls: demo_tls,
+            secret: secrets.ingest,
             ..ReplayOptions::new(format!("{ws}://{}/v1/ingest", loopback_of(addr)))
         };
         let stop = stop_rx.clone();
@@ -779,6 +981,39 @@ async fn replay(
         .into_iter()
         .map(|r| r.with_context(|| format!("replaying to {}", options.url)))
         .collect()
+}
+
+fn print_load(r: &mrptv::load::LoadReport) {
+    let ms = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+    println!(
+        "{} headset(s), {} viewer(s), {:.1} s: {} frames sent, {} processed ({:.1}/s), {} dropped, {} rejected",
+        r.headsets, r.viewers, r.seconds, r.frames_sent, r.frames_processed, r.frames_per_second,
+        r.frames_dropped, r.frames_rejected
+    );
+    println!(
+        "latency (frame sent -> causal batch), ms: p50 {} p90 {} p99 {} max {}",
+        ms(r.latency_ms_p50),
+        ms(r.latency_ms_p90),
+        ms(r.latency_ms_p99),
+        ms(r.latency_ms_max)
+    );
+    if r.viewers > 0 {
+        println!(
+            "viewers: {} batches published, each viewer got {:.0} on average (fewest {})",
+            r.batches_published, r.viewer_batches_mean, r.viewer_batches_min
+        );
+    }
+    println!(
+        "server memory (RSS): {:.1} MiB at start, {:.1} MiB at end, peak {:.1} MiB; {}",
+        r.rss_start_mib,
+        r.rss_end_mib,
+        r.rss_peak_mib,
+        if r.clean_exit {
+            "clean exit on SIGTERM"
+        } else {
+            "did NOT exit cleanly"
+        }
+    );
 }
 
 fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {

@@ -241,6 +241,9 @@ pub struct Counters {
     /// Pipeline time for the last frame and the mean over the session, milliseconds.
     pub processing_ms_last: f64,
     pub processing_ms_mean: f64,
+    /// With `serve --record`: frames written and synced to disk (see `recorded`).
+    #[serde(default)]
+    pub frames_recorded: u64,
 }
 
 /// Error codes; the `message` next to them is for people.
@@ -261,6 +264,12 @@ pub enum ErrorCode {
     UnknownSession,
     ShuttingDown,
     Internal,
+    /// Missing or wrong secret (HTTP 401 before the WebSocket upgrade).
+    Unauthorized,
+    /// A configured limit (sessions, viewers per session, image size) is reached.
+    LimitReached,
+    /// Frames arrive faster than the session's frame-rate limit.
+    RateLimited,
 }
 
 /// Messages the server sends as text, to headsets and viewers.
@@ -313,6 +322,13 @@ pub enum ServerMessage {
     SessionEnded {
         session: String,
         counters: Counters,
+    },
+    /// With `serve --record`: every processed frame up to `through_frame_index` is on disk,
+    /// synced; a crash of the server from now on cannot lose it.
+    Recorded {
+        session: String,
+        through_frame_index: u64,
+        frames_recorded: u64,
     },
 }
 

@@ -62,7 +62,12 @@ pub fn image_name(index: u64) -> String {
 
 pub fn read_rig(path: &Path) -> Result<StereoRig, RecordingError> {
     let text = fs::read_to_string(path).map_err(io_error(path))?;
-    let file: RigFile = serde_json::from_str(&text).map_err(|error| RecordingError::Json {
+    parse_rig(path, &text)
+}
+
+/// [`read_rig`] of text from anywhere; `path` names it in errors.
+pub fn parse_rig(path: &Path, text: &str) -> Result<StereoRig, RecordingError> {
+    let file: RigFile = serde_json::from_str(text).map_err(|error| RecordingError::Json {
         path: path.to_path_buf(),
         error,
     })?;
@@ -82,8 +87,17 @@ pub fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
 }
 
 pub fn read_frames(path: &Path) -> Result<Vec<FrameEntry>, RecordingError> {
+    let file = fs::File::open(path).map_err(io_error(path))?;
+    parse_frames(path, std::io::BufReader::new(file))
+}
+
+/// [`read_frames`] of text from anywhere; `path` names it in errors.
+pub fn parse_frames(
+    path: &Path,
+    text: impl std::io::BufRead,
+) -> Result<Vec<FrameEntry>, RecordingError> {
     let with_pose = tables::frames_header_with_pose();
-    let (variant, rows) = tables::read_numeric(path, &[tables::FRAMES_HEADER, &with_pose])?;
+    let (variant, rows) = tables::parse_numeric(path, text, &[tables::FRAMES_HEADER, &with_pose])?;
     let row_error = |line: usize, message: String| {
         RecordingError::Table(TableError::Row {
             path: path.to_path_buf(),
@@ -252,6 +266,8 @@ impl Recording {
 pub struct RecordingWriter {
     dir: PathBuf,
     frames: fs::File,
+    /// Sync each image before naming it (live recordings, whose frames are acknowledged).
+    durable: bool,
     with_pose: bool,
     width: u32,
     height: u32,
@@ -275,10 +291,29 @@ impl RecordingWriter {
         Ok(Self {
             dir: dir.to_path_buf(),
             frames,
+            durable: false,
             with_pose,
             width: rig.width,
             height: rig.height,
         })
+    }
+
+    /// From now on each frame is made durable by [`Self::sync`] (images are synced before they
+    /// are named); the recording's directory, `rig.json` and header are synced now.
+    pub fn into_durable(mut self) -> Result<Self, RecordingError> {
+        self.durable = true;
+        let rig = self.dir.join("rig.json");
+        fs::File::open(&rig)
+            .and_then(|f| f.sync_all())
+            .map_err(io_error(&rig))?;
+        self.sync()?;
+        let parent = self.dir.parent().filter(|p| !p.as_os_str().is_empty());
+        for d in [Some(self.dir.as_path()), parent].into_iter().flatten() {
+            fs::File::open(d)
+                .and_then(|f| f.sync_all())
+                .map_err(io_error(d))?;
+        }
+        Ok(self)
     }
 
     pub fn write_frame(
@@ -297,6 +332,13 @@ impl RecordingWriter {
             })?;
             let tmp = path.with_extension("png.tmp");
             fs::write(&tmp, png).map_err(io_error(&tmp))?;
+            if self.durable {
+                // The data reaches the disk before the name does: a crash leaves the old name
+                // (none) or the whole image, never a short one.
+                fs::File::open(&tmp)
+                    .and_then(|f| f.sync_data())
+                    .map_err(io_error(&tmp))?;
+            }
             fs::rename(&tmp, &path).map_err(io_error(&path))?;
         }
         let pose = if self.with_pose {
@@ -305,9 +347,23 @@ impl RecordingWriter {
             None
         };
         let path = self.dir.join("frames.csv");
+        // One write of the whole line: a process killed mid-frame leaves whole lines only.
         self.frames
             .write_all(tables::format_frame_row(entry.index, entry.t_s, pose.as_ref()).as_bytes())
             .map_err(io_error(&path))
+    }
+
+    /// Makes every frame written so far durable: the images' directory entries and
+    /// `frames.csv` are synced. A frame is safe from power loss once this returns.
+    pub fn sync(&mut self) -> Result<(), RecordingError> {
+        for sub in ["left", "right"] {
+            let d = self.dir.join(sub);
+            fs::File::open(&d)
+                .and_then(|f| f.sync_all())
+                .map_err(io_error(&d))?;
+        }
+        let path = self.dir.join("frames.csv");
+        self.frames.sync_data().map_err(io_error(&path))
     }
 }
 

@@ -60,12 +60,24 @@ pub struct Row {
 
 /// Reads a numeric CSV whose header must equal one of `headers`; returns which one and the rows.
 pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
+    let file = std::fs::File::open(path).map_err(|error| TableError::Io {
+        path: path.to_path_buf(),
+        error,
+    })?;
+    parse_numeric(path, BufReader::new(file), headers)
+}
+
+/// [`read_numeric`] of text from anywhere; `path` names it in errors.
+pub fn parse_numeric(
+    path: &Path,
+    text: impl BufRead,
+    headers: &[&str],
+) -> Result<(usize, Vec<Row>), TableError> {
     let io = |error| TableError::Io {
         path: path.to_path_buf(),
         error,
     };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut lines = BufReader::new(file).lines();
+    let mut lines = text.lines();
     let expected = || {
         headers
             .iter()

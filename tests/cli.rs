@@ -195,6 +195,79 @@ fn bad_inputs_get_clear_errors() {
         "{e}"
     );
 
+    for (name, text, expected) in [
+        (
+            "empty-frames",
+            "",
+            "frames.csv: empty file, expected the header",
+        ),
+        (
+            "repeated-time",
+            "index,t_s\n0,0\n1,0.1\n2,0.1\n",
+            "frames.csv line 4: t_s 0.1 does not increase",
+        ),
+        (
+            "repeated-index",
+            "index,t_s\n0,0\n0,0.1\n",
+            "frames.csv line 3: index 0 does not increase",
+        ),
+        (
+            "short-line",
+            "index,t_s\n0,0\n1\n",
+            "frames.csv line 3: 1 fields, the header has 2",
+        ),
+        (
+            "negative-index",
+            "index,t_s\n-1,0\n",
+            "frames.csv line 2: index -1 is not a non-negative whole number",
+        ),
+        (
+            "infinite-time",
+            "index,t_s\n0,inf\n",
+            "frames.csv line 2: t_s 'inf' is not a finite number",
+        ),
+    ] {
+        let r = copy(name);
+        fs::write(r.join("frames.csv"), text).expect("write");
+        let e = process(&r);
+        assert!(e.contains(expected), "{name}: {e}");
+    }
+    let r = copy("bad-pose");
+    let mut header = mrptv::tables::frames_header_with_pose();
+    header.push('\n');
+    let identity = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1";
+    let scaled = "2,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1";
+    fs::write(
+        r.join("frames.csv"),
+        format!("{header}0,0,{identity}\n1,0.1,{scaled}\n"),
+    )
+    .expect("write");
+    let e = process(&r);
+    assert!(
+        e.contains("frames.csv line 3") && e.contains("world_from_rig"),
+        "{e}"
+    );
+
+    let r = copy("not-a-rotation");
+    let mut file: serde_json::Value = serde_json::from_str(&rig).expect("json");
+    file["R"][1][1] = serde_json::json!(2.0);
+    fs::write(r.join("rig.json"), file.to_string()).expect("write");
+    let e = process(&r);
+    assert!(e.contains("rig.json") && e.contains("R"), "{e}");
+
+    // Degenerate but valid images: processed, no particles, no vectors, no error.
+    let r = copy("all-black-and-white");
+    for (side, value) in [("left", 0u8), ("right", 255u8)] {
+        for i in 0..3 {
+            let png =
+                mrptv::recording::encode_gray_png(&vec![value; 640 * 480], 640, 480).expect("png");
+            fs::write(r.join(side).join(format!("{i:06}.png")), png).expect("write");
+        }
+    }
+    ok(&["process", s(&r), "--out", s(&out)]);
+    let rows = fs::read_to_string(&out).expect("tracks.csv");
+    assert_eq!(rows.lines().count(), 1, "a header and no vectors: {rows}");
+
     let r = copy("missing-image");
     fs::remove_file(r.join("right").join("000002.png")).expect("rm");
     let e = process(&r);

@@ -27,6 +27,7 @@ fn counters() -> Counters {
         queue_depth: 1,
         processing_ms_last: 2.5,
         processing_ms_mean: 1.75,
+        frames_recorded: 296,
     }
 }
 
@@ -195,6 +196,21 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         json(&ServerMessage::Unsubscribed),
     );
     g.insert("server-pong.json", json(&ServerMessage::Pong { id: 17 }));
+    g.insert(
+        "server-recorded.json",
+        json(&ServerMessage::Recorded {
+            session: "s1".into(),
+            through_frame_index: 295,
+            frames_recorded: 296,
+        }),
+    );
+    g.insert(
+        "server-error-unauthorized.json",
+        json(&ServerMessage::error(
+            ErrorCode::Unauthorized,
+            "wrong secret for headsets (/v1/ingest): the ingest secret",
+        )),
+    );
     g.insert(
         "server-session_ended.json",
         json(&ServerMessage::SessionEnded {

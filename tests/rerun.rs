@@ -14,6 +14,9 @@ use mrptv::rerun_log::{RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 
+mod common;
+use common::assert_rrd_verified;
+
 fn mrptv() -> Command {
     Command::new(env!("CARGO_BIN_EXE_mrptv"))
 }
@@ -27,26 +30,6 @@ fn synth(dir: &Path, frames: usize) -> Recording {
     let particles = spec.default_particles;
     offline::write_synthetic(spec, dir, frames, particles, 5, |_| {}).expect("synth");
     Recording::open(dir).expect("recording")
-}
-
-/// `rerun rrd verify` accepts the file (its exit code alone is not enough: a non-rrd file gives
-/// 0 with "0 files verified").
-fn assert_verified(rrd: &Path) {
-    let out = rerun_cli()
-        .args(["rrd", "verify"])
-        .arg(rrd)
-        .output()
-        .expect("the rerun CLI runs (pip install -r tests/python/requirements.txt)");
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(
-        out.status.success() && text.contains("1 file verified"),
-        "rerun rrd verify {}: {text}",
-        rrd.display()
-    );
 }
 
 /// Rows per entity and archetype (`/world/points@Points3D`) of the recording (blueprint entities
@@ -123,7 +106,7 @@ fn process_writes_an_rrd_that_rerun_reads_with_every_entity() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert_verified(&rrd);
+    assert_rrd_verified(&rrd);
     let entities = rows_per_entity(&rrd);
     println!("{entities:#?}");
     let m = ScenarioSpec::new(Scenario::Flume)
@@ -249,7 +232,7 @@ async fn serve_logs_each_session_to_its_own_rrd() {
             "{file:?}"
         );
         let rrd = file.clone();
-        tokio::task::spawn_blocking(move || assert_verified(&rrd))
+        tokio::task::spawn_blocking(move || assert_rrd_verified(&rrd))
             .await
             .expect("verified");
         let rrd = file.clone();

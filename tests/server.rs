@@ -2,11 +2,11 @@
 //! reference client, raw tokio-tungstenite connections, and the independent Python client),
 //! vectors compared with the offline `process` output of the same frames.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
-use mrptv::client::{self, Rate, RecordingSource, ReplayOptions, ReplayReport};
+use mrptv::client::{Rate, ReplayOptions};
 use mrptv::offline::{self, ProcessSinks, Sink};
 use mrptv::protocol::{
     decode_batch, encode_frame, BatchKind, Convention, DecodedBatch, Encoding, ErrorCode,
@@ -14,64 +14,13 @@ use mrptv::protocol::{
 };
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
-use mrptv::server::{self, ServerOptions};
-use mrptv::synth::{Scenario, ScenarioSpec};
+use mrptv::server::ServerOptions;
+use mrptv::synth::Scenario;
 use mrptv::tables::{self, TrackRow};
-use tokio::net::TcpListener;
-use tokio::sync::oneshot;
 use tokio_tungstenite::tungstenite::Message;
 
-struct TestServer {
-    addr: std::net::SocketAddr,
-    stop: Option<oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<std::io::Result<server::ShutdownReport>>,
-}
-
-impl TestServer {
-    async fn start(options: ServerOptions) -> Self {
-        let listener = TcpListener::bind("127.0.0.1:0").await.expect("port 0");
-        let addr = listener.local_addr().expect("addr");
-        let (stop, stopped) = oneshot::channel::<()>();
-        let task = tokio::spawn(server::run(listener, options, async {
-            let _ = stopped.await;
-        }));
-        Self {
-            addr,
-            stop: Some(stop),
-            task,
-        }
-    }
-
-    fn ingest(&self) -> String {
-        format!("ws://{}/v1/ingest", self.addr)
-    }
-
-    fn watch(&self) -> String {
-        format!("ws://{}/v1/watch", self.addr)
-    }
-
-    /// Asks the server to shut down and waits until it has, cleanly: every connection closed.
-    async fn stop(mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-        let report = tokio::time::timeout(Duration::from_secs(20), self.task)
-            .await
-            .expect("server stops within 20 s")
-            .expect("server task")
-            .expect("server ran");
-        assert_eq!(report.connections_dropped, 0, "a clean shutdown");
-    }
-}
-
-/// A synthetic recording with its scenario's suggested config (also in REC/mrptv.toml).
-fn synth(dir: &Path, scenario: Scenario, frames: usize) -> (Recording, PipelineConfig) {
-    let spec = ScenarioSpec::new(scenario);
-    let config = spec.config.clone();
-    let particles = spec.default_particles;
-    offline::write_synthetic(spec, dir, frames, particles, 3, |_| {}).expect("synth");
-    (Recording::open(dir).expect("recording"), config)
-}
+mod common;
+use common::*;
 
 fn offline_tracks(recording: &Recording, config: &PipelineConfig, out: &Path) -> Vec<TrackRow> {
     let mut file = std::fs::File::create(out).expect("create");
@@ -128,41 +77,6 @@ fn assert_same_vectors(live: &[DecodedBatch], offline: &[TrackRow]) {
 fn values(r: &TrackRow) -> [f64; 6] {
     let (p, v) = (r.position, r.velocity);
     [p.x, p.y, p.z, v.x, v.y, v.z]
-}
-
-fn replay_options(url: String, config: &PipelineConfig) -> ReplayOptions {
-    ReplayOptions {
-        rate: Rate::Max,
-        config: Some(config.clone()),
-        finish_timeout: Duration::from_secs(60),
-        ..ReplayOptions::new(url)
-    }
-}
-
-async fn replay(rec: &Recording, options: &ReplayOptions) -> ReplayReport {
-    let source = RecordingSource::new(rec.clone(), options.encoding);
-    tokio::time::timeout(
-        Duration::from_secs(120),
-        client::replay(source, options, std::future::pending(), |_| {}),
-    )
-    .await
-    .expect("replay finishes")
-    .expect("replay succeeds")
-}
-
-/// Replays `rec` in the background.
-fn spawn_replay(rec: &Recording, options: ReplayOptions) -> tokio::task::JoinHandle<ReplayReport> {
-    let rec = rec.clone();
-    tokio::spawn(async move { replay(&rec, &options).await })
-}
-
-fn the_only_subdir(dir: &Path) -> PathBuf {
-    let dirs: Vec<PathBuf> = std::fs::read_dir(dir)
-        .expect("record dir")
-        .map(|e| e.expect("entry").path())
-        .collect();
-    assert_eq!(dirs.len(), 1, "one recorded session: {dirs:?}");
-    dirs.into_iter().next().expect("one")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -286,95 +200,6 @@ async fn python_client_written_from_the_spec_gets_the_offline_vectors() {
         String::from_utf8_lossy(&golden.stdout),
         String::from_utf8_lossy(&golden.stderr)
     );
-}
-
-type Socket =
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-
-async fn connect(url: &str) -> Socket {
-    tokio_tungstenite::connect_async(url)
-        .await
-        .expect("connects")
-        .0
-}
-
-/// The next text message, skipping binary ones and status reports.
-async fn next_text(ws: &mut Socket) -> ServerMessage {
-    loop {
-        let m = tokio::time::timeout(Duration::from_secs(20), ws.next())
-            .await
-            .expect("a message within 20 s")
-            .expect("open")
-            .expect("readable");
-        if let Message::Text(t) = m {
-            let parsed: ServerMessage = serde_json::from_str(t.as_str()).expect("server JSON");
-            if !matches!(parsed, ServerMessage::Status { .. }) {
-                return parsed;
-            }
-        }
-    }
-}
-
-async fn next_binary(ws: &mut Socket) -> DecodedBatch {
-    loop {
-        let m = tokio::time::timeout(Duration::from_secs(20), ws.next())
-            .await
-            .expect("a message within 20 s")
-            .expect("open")
-            .expect("readable");
-        match m {
-            Message::Binary(b) => return decode_batch(&b).expect("a batch"),
-            Message::Text(t) => {
-                let parsed: ServerMessage = serde_json::from_str(t.as_str()).expect("JSON");
-                assert!(
-                    matches!(parsed, ServerMessage::Status { .. }),
-                    "unexpected {parsed:?}"
-                );
-            }
-            _ => {}
-        }
-    }
-}
-
-async fn expect_error(ws: &mut Socket, send: Message, code: ErrorCode) -> String {
-    ws.send(send).await.expect("sends");
-    match next_text(ws).await {
-        ServerMessage::Error {
-            code: got, message, ..
-        } => {
-            assert_eq!(got, code, "{message}");
-            assert!(
-                message.len() > 10,
-                "a message a person can act on: {message:?}"
-            );
-            message
-        }
-        other => panic!("expected {code:?}, got {other:?}"),
-    }
-}
-
-fn hello(rec: &Recording, edit: impl FnOnce(&mut serde_json::Value)) -> Message {
-    let mut v = serde_json::json!({
-        "type": "hello", "protocol": 1, "client": "bad-message test",
-        "rig": rec.rig.to_file(),
-        "image": {"width": rec.rig.width, "height": rec.rig.height, "encoding": "raw8"},
-    });
-    edit(&mut v);
-    Message::text(v.to_string())
-}
-
-fn frame(index: u64, t_s: f64, encoding: Encoding, left: &[u8], right: &[u8]) -> Message {
-    Message::binary(
-        encode_frame(&FrameMessage {
-            encoding,
-            frame_index: index,
-            t_s,
-            world_from_rig: None,
-            left,
-            right,
-        })
-        .expect("encodes"),
-    )
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -876,23 +701,4 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
     server.stop().await;
     let report = streaming.await.expect("replay");
     assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
-}
-
-/// A minimal HTTP/1.1 GET: the body.
-async fn http_get(url: &str) -> String {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let rest = url.strip_prefix("http://").expect("http URL");
-    let (host, path) = rest.split_at(rest.find('/').expect("path"));
-    let mut tcp = tokio::net::TcpStream::connect(host)
-        .await
-        .expect("connects");
-    let request = format!("GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n");
-    tcp.write_all(request.as_bytes()).await.expect("writes");
-    let mut response = String::new();
-    tcp.read_to_string(&mut response).await.expect("reads");
-    assert!(response.starts_with("HTTP/1.1 200"), "{response}");
-    response
-        .split_once("\r\n\r\n")
-        .map(|(_, body)| body.to_string())
-        .unwrap_or_default()
 }

@@ -10,11 +10,14 @@
 //! a missing one fails the test with what to install. Screenshots and the measured figures go
 //! to `web/test-artifacts/`.
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::sync::Mutex;
 use std::time::Duration;
+
+mod common;
+use common::ServeProcess as Server;
 
 /// One browser at a time: two software-rendered pages on two cores would starve the demo.
 static BROWSER: Mutex<()> = Mutex::new(());
@@ -66,56 +69,9 @@ fn assert_success(what: &str, out: &Output) {
     );
 }
 
-/// A running `mrptv serve`, stopped when dropped.
-struct Server {
-    child: Child,
-    /// `http://127.0.0.1:PORT` or `https://...`
-    base: String,
-    /// Everything it printed before "Ctrl-C to stop."
-    banner: String,
-}
-
-impl Server {
-    fn start(args: &[&str]) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_mrptv"))
-            .args(["serve", "--bind", "127.0.0.1:0"])
-            .args(args)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::piped())
-            .spawn()
-            .expect("mrptv serve starts");
-        let stdout = child.stdout.take().expect("stdout");
-        let mut lines = BufReader::new(stdout).lines();
-        let mut banner = String::new();
-        let mut base = None;
-        for line in lines.by_ref() {
-            let line = line.expect("serve's stdout");
-            if let Some(url) = line.split("listening on ").nth(1) {
-                base = Some(url.trim().to_string());
-            }
-            banner.push_str(&line);
-            banner.push('\n');
-            if line.starts_with("Ctrl-C") {
-                break;
-            }
-        }
-        // Keep draining its output so it never blocks on a full pipe.
-        std::thread::spawn(move || for _ in lines {});
-        let base = base.unwrap_or_else(|| panic!("no listening address in:\n{banner}"));
-        Server {
-            child,
-            base,
-            banner,
-        }
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+/// Secrets the TLS tests run with, as a field deployment would.
+const INGEST_SECRET: &str = "headset-secret-for-tests";
+const WATCH_SECRET: &str = "viewer-secret-for-tests";
 
 fn artifacts() -> PathBuf {
     let dir = web().join("test-artifacts");
@@ -145,11 +101,24 @@ fn the_page_shows_live_arrows_in_chromium_flat_and_in_emulated_webxr() {
 }
 
 #[test]
-fn the_page_works_over_https_with_a_generated_certificate() {
+fn the_page_works_over_https_with_a_generated_certificate_and_a_viewers_secret() {
     require_tools();
     let tls_dir = tempfile::tempdir().expect("tmp");
     let _one_browser = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
-    let server = Server::start(&["--demo", "--tls", "--tls-dir", s(tls_dir.path())]);
+    let server = Server::start_with_env(
+        &["--demo", "--tls", "--tls-dir", s(tls_dir.path())],
+        &[
+            ("MRPTV_INGEST_SECRET", INGEST_SECRET),
+            ("MRPTV_WATCH_SECRET", WATCH_SECRET),
+        ],
+    );
+    assert!(
+        server.banner.contains("/?token=WATCH_SECRET in a browser")
+            && !server.banner.contains(WATCH_SECRET)
+            && !server.banner.contains(INGEST_SECRET),
+        "the banner says a token is needed without printing it:\n{}",
+        server.banner
+    );
     assert!(
         server.base.starts_with("https://127.0.0.1:"),
         "{}",
@@ -164,9 +133,14 @@ fn the_page_works_over_https_with_a_generated_certificate() {
     );
     assert!(server.banner.contains("SHA-256 fingerprint "));
     assert!(tls_dir.path().join("cert.pem").is_file());
-    let report = e2e(&format!("{}/", server.base), &["--flat-only"]);
+    // The demo headset got in with the ingest secret; the page with the watch secret.
+    let report = e2e(
+        &format!("{}/?token={WATCH_SECRET}", server.base),
+        &["--flat-only"],
+    );
     println!("{report}");
     assert!(report.contains("\"subscribed\":\"s1\""), "{report}");
+    assert!(report.contains("needs the viewers' secret"), "{report}");
 
     // No plaintext fallback on a TLS port.
     let addr = server.base.trim_start_matches("https://");
@@ -184,7 +158,7 @@ fn the_page_works_over_https_with_a_generated_certificate() {
 }
 
 #[test]
-fn a_headset_streams_over_wss_trusting_the_servers_certificate() {
+fn a_headset_streams_over_wss_trusting_the_servers_certificate_with_its_secret() {
     let dir = tempfile::tempdir().expect("tmp");
     let rec = dir.path().join("rec");
     let synth = Command::new(env!("CARGO_BIN_EXE_mrptv"))
@@ -193,12 +167,16 @@ fn a_headset_streams_over_wss_trusting_the_servers_certificate() {
         .expect("synth runs");
     assert_success("mrptv synth", &synth);
     let tls_dir = dir.path().join("tls");
-    let server = Server::start(&["--tls", "--tls-dir", s(&tls_dir)]);
+    let server = Server::start_with_env(
+        &["--tls", "--tls-dir", s(&tls_dir)],
+        &[("MRPTV_INGEST_SECRET", INGEST_SECRET)],
+    );
     let url = format!("{}/v1/ingest", server.base.replace("https://", "wss://"));
     let replay = |extra: &[&str]| {
         Command::new(env!("CARGO_BIN_EXE_mrptv"))
             .args(["replay", s(&rec), "--url", &url, "--rate", "max", "--json"])
             .args(extra)
+            .env_remove("MRPTV_INGEST_SECRET")
             .output()
             .expect("replay runs")
     };
@@ -211,7 +189,17 @@ fn a_headset_streams_over_wss_trusting_the_servers_certificate() {
         "{stderr}"
     );
     let cert = tls_dir.join("cert.pem");
-    let trusted = replay(&["--ca-cert", s(&cert)]);
+    // Trusted, but without the ingest secret: refused before any frame, and told why.
+    let anonymous = replay(&["--ca-cert", s(&cert)]);
+    assert!(!anonymous.status.success());
+    let stderr = String::from_utf8_lossy(&anonymous.stderr);
+    assert!(
+        stderr.contains("Unauthorized") && stderr.contains("requires a secret for headsets"),
+        "{stderr}"
+    );
+    let wrong = replay(&["--ca-cert", s(&cert), "--secret", "not-the-secret-at-all"]);
+    assert!(String::from_utf8_lossy(&wrong.stderr).contains("wrong secret"));
+    let trusted = replay(&["--ca-cert", s(&cert), "--secret", INGEST_SECRET]);
     assert_success("mrptv replay over wss", &trusted);
     let summary: serde_json::Value =
         serde_json::from_slice(&trusted.stdout).expect("replay --json prints JSON");

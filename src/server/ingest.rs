@@ -49,6 +49,42 @@ struct Connection {
     hub: Arc<Hub>,
     out: mpsc::Sender<Message>,
     session: Option<Session>,
+    rate: FrameRateLimit,
+}
+
+/// A token bucket: `rate_hz` frames a second on average, bursts of up to a second's worth.
+struct FrameRateLimit {
+    rate_hz: f64,
+    tokens: f64,
+    last: Option<Instant>,
+}
+
+impl FrameRateLimit {
+    fn new(rate_hz: f64) -> Self {
+        Self {
+            rate_hz,
+            tokens: rate_hz.max(1.0),
+            last: None,
+        }
+    }
+
+    /// Takes one frame at `now`; `false` when over the limit.
+    fn admit(&mut self, now: Instant) -> bool {
+        if self.rate_hz.is_nan() || self.rate_hz <= 0.0 {
+            return true;
+        }
+        let capacity = self.rate_hz.max(1.0);
+        if let Some(last) = self.last {
+            self.tokens = (self.tokens + (now - last).as_secs_f64() * self.rate_hz).min(capacity);
+        }
+        self.last = Some(now);
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
 }
 
 /// Serves one headset until it says bye, disconnects, or the server shuts down.
@@ -73,32 +109,45 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
     let mut shutdown = hub.shutdown.clone();
     let mut status = tokio::time::interval(hub.options.status_interval);
     status.tick().await;
+    let idle_timeout = hub.options.idle_timeout;
+    let mut keepalive = tokio::time::interval(idle_timeout / 3);
+    keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    keepalive.tick().await;
+    let mut last_heard = Instant::now();
+    let hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
     let mut conn = Connection {
         hub: Arc::clone(&hub),
         out,
         session: None,
+        rate: FrameRateLimit::new(hub.options.max_frame_rate_hz),
     };
     if hub.shutting_down() {
         conn.finish(Some("server shutting down")).await;
     } else {
         loop {
             tokio::select! {
-                message = stream.next() => match message {
-                    Some(Ok(Message::Text(text))) => {
-                        if conn.on_text(text.as_str()).await {
+                message = stream.next() => {
+                    last_heard = Instant::now();
+                    match message {
+                        Some(Ok(Message::Text(text))) => {
+                            if conn.on_text(text.as_str()).await {
+                                break;
+                            }
+                        }
+                        Some(Ok(Message::Binary(bytes))) => conn.on_binary(bytes),
+                        Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
+                        Some(Ok(Message::Close(_))) | None => {
+                            conn.finish(None).await;
                             break;
                         }
-                    }
-                    Some(Ok(Message::Binary(bytes))) => conn.on_binary(bytes),
-                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
-                    Some(Ok(Message::Close(_))) | None => {
-                        conn.finish(None).await;
-                        break;
-                    }
-                    Some(Err(e)) => {
-                        tracing::info!("headset connection failed: {e}");
-                        conn.finish(None).await;
-                        break;
+                        Some(Err(e)) => {
+                            // Includes a message over --max-message-bytes: tell the headset why
+                            // before the connection goes.
+                            tracing::info!("headset connection failed: {e}");
+                            conn.send(&ServerMessage::error(ErrorCode::BadFrame, format!("connection failed: {e}")));
+                            conn.finish(None).await;
+                            break;
+                        }
                     }
                 },
                 _ = shutdown.changed() => {
@@ -106,6 +155,23 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                     break;
                 }
                 _ = status.tick() => conn.send_status(),
+                _ = keepalive.tick() => {
+                    if last_heard.elapsed() > idle_timeout {
+                        let reason = format!("idle: nothing received for {} s", idle_timeout.as_secs_f64());
+                        tracing::info!("headset {reason}: disconnecting it");
+                        conn.finish(Some(&reason)).await;
+                        break;
+                    }
+                    // Answered by any WebSocket client library: a live but quiet headset
+                    // (paused by its wearer) stays connected.
+                    conn.send_raw(Message::Ping(Bytes::new()));
+                }
+                _ = tokio::time::sleep_until(hello_by), if conn.session.is_none() => {
+                    let reason = format!("no hello within {} s", hub.options.handshake_timeout.as_secs_f64());
+                    tracing::info!("headset sent {reason}: disconnecting it");
+                    conn.finish(Some(&reason)).await;
+                    break;
+                }
             }
         }
     }
@@ -173,6 +239,23 @@ impl Connection {
                 "the server is shutting down",
             ));
         }
+        let max_side = self.hub.options.max_image_side;
+        if hello.image.width > max_side || hello.image.height > max_side {
+            return Err(ProtocolError::new(
+                ErrorCode::LimitReached,
+                format!(
+                    "image is {}x{}: this server takes images up to {max_side} pixels a side (--max-image-size)",
+                    hello.image.width, hello.image.height
+                ),
+            ));
+        }
+        let max_sessions = self.hub.options.max_sessions;
+        if self.hub.session_count() >= max_sessions {
+            return Err(ProtocolError::new(
+                ErrorCode::LimitReached,
+                format!("{max_sessions} sessions are live, the most this server takes (--max-sessions); try again later"),
+            ));
+        }
         let rig = StereoRig::from_file(&hello.rig)
             .map_err(|e| ProtocolError::new(ErrorCode::BadCalibration, format!("rig: {e}")))?;
         if (hello.image.width, hello.image.height) != (rig.width, rig.height) {
@@ -197,14 +280,6 @@ impl Connection {
         let number = self.hub.next_session_number();
         let id = format!("s{number}");
         let started_unix_ms = unix_ms();
-        let recorder = match &self.hub.options.record_dir {
-            Some(dir) => Some(Recorder::start(
-                dir.join(format!("{id}-{started_unix_ms}")),
-                &rig,
-                pipeline.config(),
-            )?),
-            None => None,
-        };
         let queue = Arc::new(DropOldestQueue::<QueuedFrame>::new(
             self.hub.options.queue_frames,
         ));
@@ -226,6 +301,15 @@ impl Connection {
                 Box::new(move || queue.close())
             },
         });
+        let recorder = match &self.hub.options.record_dir {
+            Some(dir) => Some(Recorder::start(
+                dir.join(format!("{id}-{started_unix_ms}")),
+                &rig,
+                pipeline.config(),
+                self.durable_ack(&shared),
+            )?),
+            None => None,
+        };
         let (done_tx, worker_done) = oneshot::channel();
         let welcome = ServerMessage::Welcome {
             protocol: PROTOCOL_VERSION,
@@ -276,6 +360,23 @@ impl Connection {
         Ok(())
     }
 
+    /// Tells the headset, from the recorder thread, which frames are safely on disk. Each
+    /// `recorded` covers every frame before it, so one lost to a full send buffer is made good by
+    /// the next; the final count is in the session's counters too.
+    fn durable_ack(&self, shared: &Arc<SessionShared>) -> Box<dyn Fn(u64, u64) + Send> {
+        let out = self.out.clone();
+        let shared = Arc::clone(shared);
+        Box::new(move |through_frame_index, frames_recorded| {
+            shared.counters().frames_recorded = frames_recorded;
+            let message = ServerMessage::Recorded {
+                session: shared.id().to_string(),
+                through_frame_index,
+                frames_recorded,
+            };
+            let _ = out.try_send(Message::Text(message.to_json().into()));
+        })
+    }
+
     /// The session's Rerun logger, if asked for. A sink that cannot be opened is reported to the
     /// headset and the log; the session goes on without it.
     fn start_rerun(&self, id: &str, started_unix_ms: u64, rig: &StereoRig) -> Option<RerunLogger> {
@@ -323,6 +424,17 @@ impl Connection {
             Ok(f) => f,
             Err(e) => return self.reject_frame(e),
         };
+        if !self.rate.admit(Instant::now()) {
+            let mut e = ProtocolError::new(
+                ErrorCode::RateLimited,
+                format!(
+                    "frame {}: more than {} frames/s (--max-frame-rate); frame refused",
+                    frame.frame_index, self.hub.options.max_frame_rate_hz
+                ),
+            );
+            e.frame_index = Some(frame.frame_index);
+            return self.reject_frame(e);
+        }
         let shared = &session.shared;
         let index = frame.frame_index;
         let at_frame = |code, message: String| {
@@ -673,6 +785,7 @@ impl Recorder {
         dir: PathBuf,
         rig: &StereoRig,
         config: &PipelineConfig,
+        on_durable: Box<dyn Fn(u64, u64) + Send>,
     ) -> Result<Self, ProtocolError> {
         let cannot = |e: String| {
             ProtocolError::new(
@@ -683,20 +796,33 @@ impl Recorder {
         if dir.exists() {
             return Err(cannot("it already exists".into()));
         }
-        let mut writer =
-            RecordingWriter::create(&dir, rig, true).map_err(|e| cannot(e.to_string()))?;
-        std::fs::write(dir.join("mrptv.toml"), crate::config::to_toml(config))
+        let mut writer = RecordingWriter::create(&dir, rig, true)
+            .and_then(RecordingWriter::into_durable)
+            .map_err(|e| cannot(e.to_string()))?;
+        let toml = dir.join("mrptv.toml");
+        std::fs::write(&toml, crate::config::to_toml(config))
+            .and_then(|()| std::fs::File::open(&toml)?.sync_all())
             .map_err(|e| cannot(e.to_string()))?;
         let (tx, rx) = std_mpsc::sync_channel::<RecordedFrame>(8);
         let thread = std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || {
                 let mut written = 0;
-                for (entry, left, right) in rx {
-                    writer
-                        .write_frame(&entry, &left, &right)
-                        .map_err(|e| e.to_string())?;
-                    written += 1;
+                // Whatever has piled up is written, then synced once: at 30 Hz that is one
+                // frame, when the disk is slow it is several.
+                while let Ok(first) = rx.recv() {
+                    let mut last = first.0.index;
+                    let mut frames = vec![first];
+                    frames.extend(rx.try_iter().take(15));
+                    for (entry, left, right) in &frames {
+                        writer
+                            .write_frame(entry, left, right)
+                            .map_err(|e| e.to_string())?;
+                        last = entry.index;
+                    }
+                    writer.sync().map_err(|e| e.to_string())?;
+                    written += frames.len();
+                    on_durable(last, written as u64);
                 }
                 Ok(written)
             })

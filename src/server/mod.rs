@@ -18,6 +18,8 @@
 //! Threads: the tokio runtime runs the network tasks; each session's pipeline and recorder run
 //! on their own OS threads, so CPU-bound work never stalls the sockets.
 
+pub mod access;
+mod guard;
 mod ingest;
 pub mod queue;
 mod tls_listener;
@@ -32,16 +34,18 @@ use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::Duration;
 
 use axum::body::Bytes;
-use axum::extract::{State, WebSocketUpgrade};
-use axum::response::IntoResponse;
+use axum::extract::{Query, State, WebSocketUpgrade};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::serve::ListenerExt;
 use axum::{Json, Router};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, watch as watch_channel, Notify};
 
 use crate::protocol::{
-    Batch, Convention, Counters, SessionDescription, SessionInfo, PROTOCOL_VERSION,
+    Batch, Convention, Counters, ErrorCode, ServerMessage, SessionDescription, SessionInfo,
+    PROTOCOL_VERSION,
 };
 use crate::ptv::PipelineConfig;
 use crate::rerun_log::RerunOptions;
@@ -72,8 +76,25 @@ pub struct ServerOptions {
     pub drain_timeout: Duration,
     /// Serve HTTPS/WSS only (`mrptv serve --tls`); plain HTTP/WS when `None`.
     pub tls: Option<Arc<rustls::ServerConfig>>,
-    /// A TLS client that has not finished its handshake within this is disconnected.
-    pub tls_handshake_timeout: Duration,
+    /// Secrets for headsets and viewers; open to all by default.
+    pub access: access::AccessControl,
+    /// A client must finish its TLS handshake, then its HTTP request head, and a headset must
+    /// send its `hello`, each within this.
+    pub handshake_timeout: Duration,
+    /// A connection silent this long (no byte, no WebSocket pong) is closed. Peers are pinged
+    /// every third of it.
+    pub idle_timeout: Duration,
+    /// Connections open at once (HTTP and WebSocket); more are closed on accept.
+    pub max_connections: usize,
+    /// Live sessions at once; a further `hello` is refused (`limit_reached`).
+    pub max_sessions: usize,
+    /// Viewers subscribed to one session (subscribers to every session count for each).
+    pub max_viewers_per_session: usize,
+    /// Largest image width or height a `hello` may declare, pixels.
+    pub max_image_side: u32,
+    /// Frames per second a session takes, averaged over a second (a burst of one second's worth
+    /// passes); faster frames are refused (`rate_limited`). 0: no limit.
+    pub max_frame_rate_hz: f64,
 }
 
 impl Default for ServerOptions {
@@ -90,7 +111,14 @@ impl Default for ServerOptions {
             send_timeout: Duration::from_secs(10),
             drain_timeout: Duration::from_secs(10),
             tls: None,
-            tls_handshake_timeout: Duration::from_secs(10),
+            access: Default::default(),
+            handshake_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(30),
+            max_connections: 256,
+            max_sessions: 16,
+            max_viewers_per_session: 64,
+            max_image_side: 4096,
+            max_frame_rate_hz: 120.0,
         }
     }
 }
@@ -303,7 +331,12 @@ pub async fn run(
     let tls = options
         .tls
         .clone()
-        .map(|config| (config, options.tls_handshake_timeout));
+        .map(|config| (config, options.handshake_timeout));
+    let (max_connections, handshake_timeout, idle_timeout) = (
+        options.max_connections,
+        options.handshake_timeout,
+        options.idle_timeout,
+    );
     let hub = Arc::new(Hub::new(options, shutdown_rx));
     let app = router(Arc::clone(&hub));
     let signal = async move {
@@ -314,12 +347,23 @@ pub async fn run(
     match tls {
         Some((config, handshake_timeout)) => {
             let listener = tls_listener::TlsListener::new(listener, config, handshake_timeout)?;
+            let listener = guard::GuardedListener::new(
+                listener,
+                max_connections,
+                handshake_timeout,
+                idle_timeout,
+            );
             axum::serve(listener, app)
                 .with_graceful_shutdown(signal)
                 .await?;
         }
         None => {
-            let listener = listener.tap_io(|tcp| set_nodelay(tcp));
+            let listener = guard::GuardedListener::new(
+                listener.tap_io(|tcp| set_nodelay(tcp)),
+                max_connections,
+                handshake_timeout,
+                idle_timeout,
+            );
             axum::serve(listener, app)
                 .with_graceful_shutdown(signal)
                 .await?;
@@ -364,14 +408,63 @@ fn router(hub: Arc<Hub>) -> Router {
         .with_state(hub)
 }
 
-async fn ingest_upgrade(ws: WebSocketUpgrade, State(hub): State<Arc<Hub>>) -> impl IntoResponse {
+/// `?token=SECRET`, for clients that cannot set an `Authorization` header.
+#[derive(Deserialize)]
+struct TokenQuery {
+    token: Option<String>,
+}
+
+/// The 401 (with the protocol's error message) for a request without the role's secret.
+fn refusal(
+    hub: &Hub,
+    role: access::Role,
+    headers: &HeaderMap,
+    query: &TokenQuery,
+) -> Option<Response> {
+    let message = hub
+        .options
+        .access
+        .check(role, headers, query.token.as_deref())
+        .err()?;
+    tracing::info!(?role, "refused: {message}");
+    let body = ServerMessage::error(ErrorCode::Unauthorized, message).to_json();
+    Some(
+        (
+            StatusCode::UNAUTHORIZED,
+            [
+                (header::WWW_AUTHENTICATE, "Bearer"),
+                (header::CONTENT_TYPE, "application/json"),
+            ],
+            body,
+        )
+            .into_response(),
+    )
+}
+
+async fn ingest_upgrade(
+    ws: WebSocketUpgrade,
+    headers: HeaderMap,
+    Query(query): Query<TokenQuery>,
+    State(hub): State<Arc<Hub>>,
+) -> Response {
+    if let Some(refused) = refusal(&hub, access::Role::Ingest, &headers, &query) {
+        return refused;
+    }
     let max = hub.options.max_message_bytes;
     ws.max_message_size(max)
         .max_frame_size(max)
         .on_upgrade(move |socket| ingest::serve_headset(socket, hub))
 }
 
-async fn watch_upgrade(ws: WebSocketUpgrade, State(hub): State<Arc<Hub>>) -> impl IntoResponse {
+async fn watch_upgrade(
+    ws: WebSocketUpgrade,
+    headers: HeaderMap,
+    Query(query): Query<TokenQuery>,
+    State(hub): State<Arc<Hub>>,
+) -> Response {
+    if let Some(refused) = refusal(&hub, access::Role::Watch, &headers, &query) {
+        return refused;
+    }
     ws.max_message_size(1 << 20)
         .on_upgrade(move |socket| watch::serve_viewer(socket, hub))
 }
@@ -402,10 +495,18 @@ struct Sessions {
     sessions: Vec<SessionInfo>,
 }
 
-async fn sessions(State(hub): State<Arc<Hub>>) -> Json<Sessions> {
+async fn sessions(
+    headers: HeaderMap,
+    Query(query): Query<TokenQuery>,
+    State(hub): State<Arc<Hub>>,
+) -> Response {
+    if let Some(refused) = refusal(&hub, access::Role::Watch, &headers, &query) {
+        return refused;
+    }
     Json(Sessions {
         sessions: hub.session_list(),
     })
+    .into_response()
 }
 
 /// Batches are small and latency-critical: no Nagle delay.

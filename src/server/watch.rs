@@ -107,6 +107,12 @@ where
         .then(|| tokio::time::Instant::now() + hub.options.drain_timeout / 2);
     let mut reply = Some(sessions());
     let mut lagged: u64 = 0;
+    let idle_timeout = hub.options.idle_timeout;
+    let mut keepalive = tokio::time::interval(idle_timeout / 3);
+    keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    keepalive.tick().await;
+    let mut last_heard = tokio::time::Instant::now();
+    let mut reason = "server shutting down".to_string();
     loop {
         if let Some(message) = reply.take() {
             // A viewer that cannot take one message in `send_timeout` is gone.
@@ -147,14 +153,26 @@ where
                 }
                 Err(RecvError::Closed) => break,
             },
-            message = stream.next() => match message {
-                Some(Ok(Message::Text(t))) => Some(text(&handle_request(&hub, &mut viewer, t.as_str()))),
-                Some(Ok(Message::Binary(_))) => Some(text(&ServerMessage::error(
-                    ErrorCode::UnknownType,
-                    "viewers send only text messages (subscribe, unsubscribe, list)",
-                ))),
-                Some(Ok(Message::Ping(_) | Message::Pong(_))) => None,
-                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return,
+            message = stream.next() => {
+                last_heard = tokio::time::Instant::now();
+                match message {
+                    Some(Ok(Message::Text(t))) => Some(text(&handle_request(&hub, &mut viewer, t.as_str()))),
+                    Some(Ok(Message::Binary(_))) => Some(text(&ServerMessage::error(
+                        ErrorCode::UnknownType,
+                        "viewers send only text messages (subscribe, unsubscribe, list)",
+                    ))),
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => None,
+                    Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return,
+                }
+            },
+            // Browsers answer WebSocket pings by themselves: only a vanished viewer goes silent.
+            _ = keepalive.tick() => {
+                if last_heard.elapsed() > idle_timeout {
+                    reason = format!("idle: nothing received for {} s", idle_timeout.as_secs_f64());
+                    tracing::info!("viewer {reason}: disconnecting it");
+                    break;
+                }
+                Some(Message::Ping(Default::default()))
             },
             // Once seen (or once the sender is gone), `changed` would fire at once forever.
             _ = shutdown.changed(), if closing_by.is_none() => {
@@ -164,20 +182,36 @@ where
             _ = tokio::time::sleep_until(deadline), if closing_by.is_some() => break,
         };
     }
-    let bye = text(&ServerMessage::Bye {
-        reason: "server shutting down".into(),
-        counters: None,
-    });
     let close = Message::Close(Some(CloseFrame {
         code: 1001,
-        reason: "server shutting down".into(),
+        reason: reason.clone().into(),
     }));
+    let bye = text(&ServerMessage::Bye {
+        reason,
+        counters: None,
+    });
     let _ = tokio::time::timeout(send_timeout, async {
         if sink.send(bye).await.is_ok() {
             let _ = sink.send(close).await;
         }
     })
     .await;
+}
+
+/// Viewers of the target's session, or of the most watched session for `All`.
+fn viewers_of(hub: &Hub, target: Target) -> usize {
+    let sessions = hub.sessions();
+    let subscribed = match target {
+        Target::One(number) => sessions
+            .get(&number)
+            .map_or(0, |s| s.viewers.load(Ordering::Relaxed)),
+        Target::All => sessions
+            .values()
+            .map(|s| s.viewers.load(Ordering::Relaxed))
+            .max()
+            .unwrap_or(0),
+    };
+    subscribed + hub.wildcard_viewers.load(Ordering::Relaxed)
 }
 
 fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
@@ -209,6 +243,15 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
                 )
                 .to_message();
             };
+            let already = viewer.subscription.as_ref().map(|s| s.target) == Some(target);
+            let max = hub.options.max_viewers_per_session;
+            if !already && viewers_of(hub, target) >= max {
+                return ProtocolError::new(
+                    ErrorCode::LimitReached,
+                    format!("{session}: {max} viewers are watching, the most this server allows per session (--max-viewers)"),
+                )
+                .to_message();
+            }
             viewer.set(Some(Subscription { target, convention }));
             ServerMessage::Subscribed {
                 session,

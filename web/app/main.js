@@ -131,6 +131,7 @@ const state = {
   xrMode: null,
   xrReferenceSpace: null,
   pixelProbe: null,
+  contextLosses: 0,
 };
 $('kind').value = state.kind === KIND_REFINED ? 'refined' : 'causal';
 
@@ -141,9 +142,31 @@ function showMessage(text) {
 }
 
 // ---------------------------------------------------------------- protocol
+// A server started with a watch secret wants it as ?token=; browsers cannot set headers on a
+// WebSocket, so the page passes on its own ?token=.
+const token = params.get('token');
+const tokenQuery = token ? `?token=${encodeURIComponent(token)}` : '';
+
 function watchUrl() {
   const scheme = location.protocol === 'https:' ? 'wss:' : 'ws:';
-  return `${scheme}//${location.host}/v1/watch`;
+  return `${scheme}//${location.host}/v1/watch${tokenQuery}`;
+}
+
+/** After a connection that never opened: says so if the server wants a (different) secret. */
+async function explainRefusal() {
+  try {
+    const response = await fetch(`/v1/sessions${tokenQuery}`);
+    if (response.status === 401) {
+      const body = await response.json().catch(() => ({}));
+      showMessage(
+        token
+          ? `the server refused this page's token: ${body.message ?? 'wrong secret'}`
+          : 'this server needs the viewers\' secret: open this page as …/?token=WATCH_SECRET',
+      );
+    }
+  } catch {
+    // The server is not there: the reconnect loop says so.
+  }
 }
 
 function connect() {
@@ -161,6 +184,7 @@ function connect() {
     else onBatch(event.data);
   };
   socket.onclose = () => {
+    if (state.connection !== 'open') explainRefusal();
     state.socket = null;
     state.subscribed = null;
     state.pingSentAt.clear();
@@ -560,12 +584,26 @@ function countColouredPixels() {
   const pixels = new Uint8Array(w * h * 4);
   gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
   let coloured = 0;
+  // Tells a frame that drew nothing (all zero) from one that drew only the background.
+  let blank = 0;
   for (let i = 0; i < pixels.length; i += 4) {
     const r = pixels[i], g = pixels[i + 1], b = pixels[i + 2];
     if (Math.max(r, g, b) - Math.min(r, g, b) > 60) coloured++;
+    else if ((r | g | b | pixels[i + 3]) === 0) blank++;
   }
-  return { coloured, total: w * h, width: w, height: h };
+  return { coloured, blank, total: w * h, width: w, height: h, contextLost: gl.isContextLost() };
 }
+
+// Browsers take the WebGL context away when the GPU (or its software stand-in) resets or is
+// starved; three.js rebuilds what it needs once it is restored. Say so rather than go blank.
+renderer.domElement.addEventListener('webglcontextlost', () => {
+  state.contextLosses++;
+  showMessage('graphics context lost: waiting for the browser to restore it');
+});
+renderer.domElement.addEventListener('webglcontextrestored', () => {
+  showMessage('');
+  state.dirty = true;
+});
 
 renderer.setAnimationLoop((time, frame) => {
   const now = performance.now();
@@ -603,6 +641,7 @@ window.mrptv = {
     xrMode: state.xrMode,
     xrReferenceSpace: state.xrMode ? state.xrReferenceSpace : null,
     xrFrames: state.xrFrames,
+    contextLosses: state.contextLosses,
     ...hudFigures(),
   }),
   /** Resolves after the next rendered frame with how many of its pixels are strongly coloured. */
