@@ -271,11 +271,23 @@ pub fn rotation_from_matrix(
             "is a reflection (determinant -1), not a rotation",
         ));
     }
-    // Already checked orthonormal: take it as it is, renormalised through a quaternion.
-    // (`Rotation3::from_matrix` iterates from the identity and lands on the identity for exact
-    // 180-degree turns such as diag(-1, 1, -1).)
-    let unit = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*m));
-    Ok(unit.to_rotation_matrix())
+    // Within tolerance of a rotation: take the nearest one (polar decomposition, R = U V^T).
+    // Unlike a renormalised quaternion it is idempotent, so a pose decoded, re-encoded and
+    // decoded again comes back the same (found by fuzzing the frame decoder). And unlike
+    // `Rotation3::from_matrix`, which iterates from the identity, it does not land on the
+    // identity for exact 180-degree turns such as diag(-1, 1, -1).
+    let svd = m.svd(true, true);
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(invalid(field, "has no singular value decomposition"));
+    };
+    let nearest = u * v_t;
+    if nearest.determinant() < 0.0 {
+        return Err(invalid(
+            field,
+            "is a reflection (determinant -1), not a rotation",
+        ));
+    }
+    Ok(Rotation3::from_matrix_unchecked(nearest))
 }
 
 impl StereoRig {
@@ -513,6 +525,40 @@ mod tests {
 
     fn hololens_like_rig() -> StereoRig {
         crate::synth::hololens_raw_rig()
+    }
+
+    #[test]
+    fn a_nearly_rigid_pose_is_projected_once_and_for_all() {
+        // Off by 2e-6 from a rotation about z: accepted, and the projection is idempotent.
+        let (c, s) = (0.8f64, 0.6f64);
+        let m = [
+            c + 2e-6,
+            -s,
+            0.0,
+            1.0, //
+            s,
+            c,
+            0.0,
+            2.0, //
+            0.0,
+            0.0,
+            1.0,
+            3.0, //
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+        ];
+        let once = isometry_from_row_major("pose", &m).expect("within tolerance");
+        let twice = isometry_from_row_major("pose", &isometry_to_row_major(&once)).expect("rigid");
+        let d = (once.to_homogeneous() - twice.to_homogeneous()).abs().max();
+        assert!(d < 1e-12, "{d}");
+        let r = once.rotation.to_rotation_matrix();
+        assert!((r.matrix()[(0, 0)] - c).abs() < 2e-6);
+        // An exact half turn stays one.
+        let half = Matrix3::from_diagonal(&Vector3::new(-1.0, 1.0, -1.0));
+        let r = rotation_from_matrix("R", &half).expect("a rotation");
+        assert!((r.matrix() - half).abs().max() < 1e-12);
     }
 
     #[test]

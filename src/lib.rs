@@ -39,6 +39,8 @@
 pub mod client;
 pub mod config;
 pub mod eval;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod geometry;
 #[cfg(feature = "service")]
 pub mod load;

@@ -321,3 +321,80 @@ fn bad_inputs_get_clear_errors() {
     let e = fails(&["synth", "flume", s(&rec)]);
     assert!(e.contains("exists and is not empty"), "{e}");
 }
+
+#[test]
+fn load_drives_headsets_and_viewers_and_reports_what_it_measured() {
+    let out = ok(&[
+        "load",
+        "--headsets",
+        "2",
+        "--viewers",
+        "3",
+        "--seconds",
+        "3",
+        "--json",
+    ]);
+    let r: serde_json::Value = serde_json::from_str(out.trim()).expect("one JSON report");
+    let n = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} in {r}"));
+    // 2 headsets x 30 Hz x 3 s, give or take start-up.
+    assert!((150.0..=185.0).contains(&n("frames_sent")), "{r}");
+    assert_eq!(n("frames_processed"), n("frames_sent"), "{r}");
+    assert_eq!(n("frames_dropped") + n("frames_rejected"), 0.0, "{r}");
+    assert!(n("latency_ms_p50") > 0.0 && n("latency_ms_p99") >= n("latency_ms_p50"));
+    assert!(
+        n("batches_published") > n("frames_processed"),
+        "causal and refined: {r}"
+    );
+    assert_eq!(n("viewer_batches_min"), n("batches_published"), "{r}");
+    assert!(
+        n("rss_start_mib") > 1.0 && n("rss_peak_mib") >= n("rss_end_mib"),
+        "{r}"
+    );
+    assert_eq!(r["clean_exit"], true, "{r}");
+    let e = fails(&["load", "--headsets", "0"]);
+    assert!(e.contains("--headsets must be at least 1"), "{e}");
+}
+
+#[test]
+fn serving_beyond_loopback_without_secrets_or_tls_says_what_is_exposed() {
+    use std::io::{BufRead, BufReader};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mrptv"))
+        .args(["serve", "--bind", "0.0.0.0:0"])
+        .env_remove("MRPTV_INGEST_SECRET")
+        .env_remove("MRPTV_WATCH_SECRET")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("serve starts");
+    let stderr = child.stderr.take().expect("stderr");
+    // Should the warnings never come, the server is stopped and the assertions below say so.
+    let pid = child.id().to_string();
+    std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(15));
+        let _ = Command::new("kill").arg(&pid).status();
+    });
+    let warnings: Vec<String> = BufReader::new(stderr)
+        .lines()
+        .map_while(Result::ok)
+        .filter(|l| l.starts_with("warning:"))
+        .take(2)
+        .collect();
+    let _ = child.kill();
+    let _ = child.wait();
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert!(
+        warnings[0].contains("no secret for headsets or viewers"),
+        "{warnings:?}"
+    );
+    assert!(warnings[1].contains("without TLS"), "{warnings:?}");
+    let e = fails(&["serve", "--ingest-secret", "short"]);
+    assert!(e.contains("at least 12"), "{e}");
+    let e = fails(&[
+        "serve",
+        "--ingest-secret",
+        "the-same-secret",
+        "--watch-secret",
+        "the-same-secret",
+    ]);
+    assert!(e.contains("the same"), "{e}");
+}

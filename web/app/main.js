@@ -577,21 +577,48 @@ async function toggleXr(mode) {
 }
 
 // ---------------------------------------------------------------- frame loop
-function countColouredPixels() {
+function readPixels() {
   const gl = renderer.getContext();
   const w = gl.drawingBufferWidth;
   const h = gl.drawingBufferHeight;
   const pixels = new Uint8Array(w * h * 4);
   gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+  return { pixels, w, h, contextLost: gl.isContextLost() };
+}
+
+const PROBE_BACKGROUND = new THREE.Color(0x000000);
+
+/**
+ * Renders the frame once more with the arrows alone on black and counts the pixels they cover
+ * (the darkest ramp colour, (68, 1, 84), is far above the threshold whatever the speeds), and
+ * the strongly coloured pixels of the real frame; then renders the real frame again.
+ */
+function probeFrame() {
+  const frame = readPixels();
   let coloured = 0;
-  // Tells a frame that drew nothing (all zero) from one that drew only the background.
-  let blank = 0;
-  for (let i = 0; i < pixels.length; i += 4) {
-    const r = pixels[i], g = pixels[i + 1], b = pixels[i + 2];
+  for (let i = 0; i < frame.pixels.length; i += 4) {
+    const r = frame.pixels[i], g = frame.pixels[i + 1], b = frame.pixels[i + 2];
     if (Math.max(r, g, b) - Math.min(r, g, b) > 60) coloured++;
-    else if ((r | g | b | pixels[i + 3]) === 0) blank++;
   }
-  return { coloured, blank, total: w * h, width: w, height: h, contextLost: gl.isContextLost() };
+  const shown = [points.visible, trails.visible, box.visible, scene.background];
+  points.visible = trails.visible = box.visible = false;
+  scene.background = PROBE_BACKGROUND;
+  renderer.render(scene, camera);
+  const alone = readPixels();
+  [points.visible, trails.visible, box.visible, scene.background] = shown;
+  renderer.render(scene, camera);
+  let arrowPixels = 0;
+  for (let i = 0; i < alone.pixels.length; i += 4) {
+    if (Math.max(alone.pixels[i], alone.pixels[i + 1], alone.pixels[i + 2]) > 24) arrowPixels++;
+  }
+  return {
+    arrowPixels,
+    coloured,
+    total: frame.w * frame.h,
+    width: frame.w,
+    height: frame.h,
+    contextLost: frame.contextLost,
+  };
 }
 
 // Browsers take the WebGL context away when the GPU (or its software stand-in) resets or is
@@ -617,7 +644,7 @@ renderer.setAnimationLoop((time, frame) => {
   if (state.pixelProbe) {
     const resolve = state.pixelProbe;
     state.pixelProbe = null;
-    resolve({ ...countColouredPixels(), presenting: renderer.xr.isPresenting });
+    resolve({ ...probeFrame(), presenting: renderer.xr.isPresenting });
   }
 });
 
@@ -644,7 +671,7 @@ window.mrptv = {
     contextLosses: state.contextLosses,
     ...hudFigures(),
   }),
-  /** Resolves after the next rendered frame with how many of its pixels are strongly coloured. */
+  /** Resolves after the next rendered frame with how many of its pixels the arrows cover. */
   probePixels: () => new Promise((resolve) => (state.pixelProbe = resolve)),
 };
 

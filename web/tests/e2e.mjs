@@ -128,7 +128,7 @@ try {
     assert.equal(await page.isVisible('#enter-vr'), false, 'Enter VR hidden without WebXR support');
     assert.equal(await page.isVisible('#enter-ar'), false, 'Enter AR hidden without WebXR support');
     assert.equal(await page.isVisible('#xr-hint'), false, 'no https hint on a secure page');
-    const pixels = await probeUntil(page, 'arrows on screen', (p) => p.coloured > 500);
+    const pixels = await probeUntil(page, 'arrows on screen', (p) => p.arrowPixels > 500);
     // Pause freezes the picture while data keeps arriving.
     await page.click('#pause');
     // A batch that arrived before the click may still be drawn in the next animation frame.
@@ -185,7 +185,7 @@ try {
     // Software rendering on two cores: a slow frame rate, but frames.
     assert.ok(vr.xrFrames - entered.xrFrames >= 10, `XR frames rendered: ${vr.xrFrames - entered.xrFrames} in 2 s`);
     assert.ok(vr.arrows > 0 && vr.frameIndex > entered.frameIndex, 'arrows keep updating in XR');
-    const xrPixels = await probeUntil(page, 'arrows in an XR frame', (p) => p.presenting && p.coloured > 200);
+    const xrPixels = await probeUntil(page, 'arrows in an XR frame', (p) => p.presenting && p.arrowPixels > 200);
     await page.screenshot({ path: join(args.artifacts, 'xr-vr.png') });
     // In XR the emulator's canvas covers the page: press the (now "Exit VR") button directly.
     await page.$eval('#enter-vr', (b) => b.click());
@@ -195,7 +195,7 @@ try {
     await page.waitForTimeout(500);
     const arLater = await page.evaluate(() => window.mrptv.stats());
     assert.ok(arLater.xrFrames > ar.xrFrames, 'AR frames rendered');
-    const arPixels = await probeUntil(page, 'arrows in an AR frame', (p) => p.presenting && p.coloured > 200);
+    const arPixels = await probeUntil(page, 'arrows in an AR frame', (p) => p.presenting && p.arrowPixels > 200);
     await page.screenshot({ path: join(args.artifacts, 'xr-ar.png') });
     report.xr = {
       vrFramesIn2s: vr.xrFrames - entered.xrFrames,
