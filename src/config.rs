@@ -82,8 +82,11 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.contains("velocity.half_window_frames: must be >= 1"),
+            e.contains("velocity.half_window_frames: must be in 1..=100"),
             "{e}"
         );
+        let huge = format!("[velocity]\nhalf_window_frames = {}\n", u64::MAX);
+        let e = parse(Path::new("c.toml"), &huge).unwrap_err().to_string();
+        assert!(e.contains("half_window_frames"), "{e}");
     }
 }

@@ -226,8 +226,12 @@ fn render_ring(scenario: Scenario, frames: usize) -> (StereoRig, Arc<Vec<SourceF
     (spec.rig.clone(), Arc::new(ring), spec.frame_interval_s)
 }
 
-/// A viewer subscribed to every session until `stop`; the batches it received.
-async fn watch(url: String, stop: tokio::sync::watch::Receiver<bool>) -> Result<u64, String> {
+/// A viewer subscribed to every session until `stop`; counts the batches it receives.
+async fn watch(
+    url: String,
+    stop: tokio::sync::watch::Receiver<bool>,
+    received: Arc<AtomicU64>,
+) -> Result<(), String> {
     let (mut ws, _) = tokio_tungstenite::connect_async(url.as_str())
         .await
         .map_err(|e| e.to_string())?;
@@ -235,11 +239,12 @@ async fn watch(url: String, stop: tokio::sync::watch::Receiver<bool>) -> Result<
         .await
         .map_err(|e| e.to_string())?;
     let mut stop = stop;
-    let mut batches = 0;
     loop {
         tokio::select! {
             m = ws.next() => match m {
-                Some(Ok(Message::Binary(_))) => batches += 1,
+                Some(Ok(Message::Binary(_))) => {
+                    received.fetch_add(1, Ordering::Relaxed);
+                }
                 Some(Ok(_)) => {}
                 Some(Err(e)) => return Err(e.to_string()),
                 None => break,
@@ -247,7 +252,7 @@ async fn watch(url: String, stop: tokio::sync::watch::Receiver<bool>) -> Result<
             _ = stop.wait_for(|s| *s) => break,
         }
     }
-    Ok(batches)
+    Ok(())
 }
 
 /// Runs the load; `progress` gets (seconds elapsed, frames sent so far) about 4 times a second.
@@ -262,8 +267,17 @@ pub async fn run(
     tokio::time::sleep(Duration::from_millis(200)).await;
     let (rss_start, _) = process_memory_mib(pid).unwrap_or_default();
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let viewers: Vec<_> = (0..options.viewers)
-        .map(|_| tokio::spawn(watch(format!("ws://{addr}/v1/watch"), stop_rx.clone())))
+    let (viewers_stop_tx, viewers_stop_rx) = tokio::sync::watch::channel(false);
+    let received: Vec<Arc<AtomicU64>> = (0..options.viewers).map(|_| Default::default()).collect();
+    let viewers: Vec<_> = received
+        .iter()
+        .map(|count| {
+            tokio::spawn(watch(
+                format!("ws://{addr}/v1/watch"),
+                viewers_stop_rx.clone(),
+                Arc::clone(count),
+            ))
+        })
         .collect();
     // Viewers subscribe before the first frame, so every batch is theirs to receive.
     tokio::time::sleep(Duration::from_millis(300)).await;
@@ -336,14 +350,22 @@ pub async fn run(
         latencies.extend(r.latencies_s);
     }
     let (rss_end, rss_peak) = process_memory_mib(pid).unwrap_or_default();
-    let mut received = Vec::new();
+    // The headsets have their last batches; the viewers' copies may still be on the way.
+    let drain_by = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < drain_by
+        && received
+            .iter()
+            .any(|r| r.load(Ordering::Relaxed) < report.batches_published)
+    {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let _ = viewers_stop_tx.send(true);
     for (n, v) in viewers.into_iter().enumerate() {
-        let batches = v
-            .await
+        v.await
             .map_err(|e| LoadError::Viewer(n, e.to_string()))?
             .map_err(|e| LoadError::Viewer(n, e))?;
-        received.push(batches);
     }
+    let received: Vec<u64> = received.iter().map(|r| r.load(Ordering::Relaxed)).collect();
     report.clean_exit = tokio::task::spawn_blocking(move || server.stop())
         .await
         .unwrap_or(false);

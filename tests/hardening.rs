@@ -280,6 +280,45 @@ async fn limits_refuse_with_clear_errors_and_free_up_again() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hellos_at_the_same_moment_never_exceed_the_session_limit() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 2);
+    let record = tmp.path().join("recorded");
+    let server = TestServer::start(ServerOptions {
+        max_sessions: 2,
+        // Recording makes starting a session slow (files created and synced): a wide window.
+        record_dir: Some(record),
+        ..Default::default()
+    })
+    .await;
+    let mut sockets = Vec::new();
+    for _ in 0..8 {
+        sockets.push(connect(&server.ingest()).await);
+    }
+    let attempts = sockets.into_iter().map(|mut ws| {
+        let hello = hello(&rec, |_| {});
+        async move {
+            ws.send(hello).await.expect("sends");
+            let answer = next_text(&mut ws).await;
+            (answer, ws)
+        }
+    });
+    let answers = futures_util::future::join_all(attempts).await;
+    let welcomed = answers
+        .iter()
+        .filter(|(a, _)| matches!(a, ServerMessage::Welcome { .. }))
+        .count();
+    let refused = answers
+        .iter()
+        .filter(|(a, _)| {
+            matches!(a, ServerMessage::Error { code, .. } if *code == ErrorCode::LimitReached)
+        })
+        .count();
+    assert_eq!((welcomed, refused), (2, 6));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn silent_trickling_and_idle_peers_are_cut_off_quiet_ones_are_not() {
     let tmp = tempfile::tempdir().expect("tmp");
     let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 4);
@@ -322,6 +361,23 @@ async fn silent_trickling_and_idle_peers_are_cut_off_quiet_ones_are_not() {
     });
     let waited = dripping.await.expect("trickler");
     assert!(waited < Duration::from_secs(3), "{waited:?}");
+    // A keep-alive request is answered and the connection closed: nobody parks a connection to
+    // trickle a second request outside the deadline.
+    let mut parked = TcpStream::connect(server.addr).await.expect("connects");
+    parked
+        .write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+        .await
+        .expect("writes");
+    let mut answer = Vec::new();
+    tokio::time::timeout(Duration::from_secs(2), parked.read_to_end(&mut answer))
+        .await
+        .expect("closed right after the answer")
+        .expect("read");
+    let answer = String::from_utf8_lossy(&answer).to_ascii_lowercase();
+    assert!(
+        answer.starts_with("http/1.1 200") && answer.contains("connection: close"),
+        "{answer}"
+    );
 
     // A headset that never says hello gets a bye saying why.
     let mut mute = connect(&server.ingest()).await;
@@ -340,6 +396,25 @@ async fn silent_trickling_and_idle_peers_are_cut_off_quiet_ones_are_not() {
     deaf.write_all(&ws_frame(1, hello_bytes.len(), &hello_bytes))
         .await
         .expect("hello");
+    // A viewer only receives; its library answers the pings, so it stays too.
+    let mut viewer = connect(&server.watch()).await;
+    viewer
+        .send(Message::text(r#"{"type":"subscribe","session":"*"}"#))
+        .await
+        .expect("subscribes");
+    let watching = tokio::spawn(async move {
+        let until = tokio::time::Instant::now() + Duration::from_millis(3500);
+        let mut pings = 0;
+        while let Ok(m) = tokio::time::timeout_at(until, viewer.next()).await {
+            match m.expect("open").expect("readable") {
+                Message::Ping(_) => pings += 1,
+                Message::Text(t) => assert!(!t.as_str().contains("\"bye\""), "{}", t.as_str()),
+                Message::Close(c) => panic!("viewer closed: {c:?}"),
+                _ => {}
+            }
+        }
+        pings
+    });
     let until = tokio::time::Instant::now() + Duration::from_millis(3500);
     let mut pings = 0;
     while let Ok(m) = tokio::time::timeout_at(until, quiet.next()).await {
@@ -350,6 +425,8 @@ async fn silent_trickling_and_idle_peers_are_cut_off_quiet_ones_are_not() {
         }
     }
     assert!(pings >= 3, "pinged every 0.5 s: {pings}");
+    let viewer_pings = watching.await.expect("the viewer stayed");
+    assert!(viewer_pings >= 3, "viewer pinged too: {viewer_pings}");
     let mut received = Vec::new();
     tokio::time::timeout(Duration::from_secs(5), deaf.read_to_end(&mut received))
         .await

@@ -135,8 +135,10 @@ impl PipelineConfig {
                 "must be below 1 (1 would never update)",
             );
         }
-        if self.velocity.half_window_frames == 0 {
-            return bad("velocity.half_window_frames", "must be >= 1");
+        // M frames of delay: 100 is over 3 s at 30 Hz, far beyond any useful window, and keeps
+        // a client-sent value from overflowing the frame arithmetic or the track memory.
+        if !(1..=100).contains(&self.velocity.half_window_frames) {
+            return bad("velocity.half_window_frames", "must be in 1..=100");
         }
         if self.velocity.max_missing_per_side >= self.velocity.half_window_frames {
             return bad(

@@ -114,12 +114,15 @@ impl AccessControl {
         let Some(secret) = self.secret(role) else {
             return Ok(());
         };
+        // The scheme name is case-insensitive (RFC 9110); the secret is compared exactly.
         let bearer = headers
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
+            .and_then(|v| v.split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, secret)| secret);
         match bearer.or(token) {
-            Some(presented) if secret.admits(presented.trim()) => Ok(()),
+            Some(presented) if secret.admits(presented) => Ok(()),
             Some(_) => Err(format!("wrong secret for {}", role.what())),
             None => Err(format!(
                 "this server requires a secret for {}; send `Authorization: Bearer SECRET` or `?token=SECRET`",
@@ -178,6 +181,15 @@ mod tests {
         assert!(access
             .check(Role::Ingest, &bearer("headset-secret-1"), None)
             .is_ok());
+        let mut lower = HeaderMap::new();
+        lower.insert(
+            header::AUTHORIZATION,
+            HeaderValue::from_static("bearer headset-secret-1"),
+        );
+        assert!(access.check(Role::Ingest, &lower, None).is_ok());
+        assert!(access
+            .check(Role::Ingest, &bearer(" headset-secret-1"), None)
+            .is_err());
         assert!(access
             .check(Role::Ingest, &none, Some("headset-secret-1"))
             .is_ok());

@@ -43,6 +43,8 @@ struct Session {
     last_index: std::cell::Cell<Option<u64>>,
     /// Resolves when the pipeline thread has drained the queue and closed the recording.
     worker_done: oneshot::Receiver<()>,
+    /// Its place among `--max-sessions`, given back when the session ends.
+    _slot: super::SessionSlot,
 }
 
 struct Connection {
@@ -110,11 +112,11 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
     let mut status = tokio::time::interval(hub.options.status_interval);
     status.tick().await;
     let idle_timeout = hub.options.idle_timeout;
-    let mut keepalive = tokio::time::interval(idle_timeout / 3);
+    let mut keepalive = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
     keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     keepalive.tick().await;
     let mut last_heard = Instant::now();
-    let hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
+    let mut hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
     let mut conn = Connection {
         hub: Arc::clone(&hub),
         out,
@@ -132,6 +134,10 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                         Some(Ok(Message::Text(text))) => {
                             if conn.on_text(text.as_str()).await {
                                 break;
+                            }
+                            // A refused hello may be corrected: the time runs from the refusal.
+                            if conn.session.is_none() {
+                                hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
                             }
                         }
                         Some(Ok(Message::Binary(bytes))) => conn.on_binary(bytes),
@@ -224,7 +230,7 @@ impl Connection {
                         s.shared.id()
                     );
                     self.reject(ProtocolError::new(ErrorCode::AlreadyStarted, message));
-                } else if let Err(e) = self.start(*hello) {
+                } else if let Err(e) = self.start(*hello).await {
                     self.reject(e);
                 }
             }
@@ -232,7 +238,7 @@ impl Connection {
         false
     }
 
-    fn start(&mut self, hello: Hello) -> Result<(), ProtocolError> {
+    async fn start(&mut self, hello: Hello) -> Result<(), ProtocolError> {
         if self.hub.shutting_down() {
             return Err(ProtocolError::new(
                 ErrorCode::ShuttingDown,
@@ -249,13 +255,13 @@ impl Connection {
                 ),
             ));
         }
-        let max_sessions = self.hub.options.max_sessions;
-        if self.hub.session_count() >= max_sessions {
+        let Some(slot) = self.hub.reserve_session() else {
+            let max = self.hub.options.max_sessions;
             return Err(ProtocolError::new(
                 ErrorCode::LimitReached,
-                format!("{max_sessions} sessions are live, the most this server takes (--max-sessions); try again later"),
+                format!("{max} sessions are live, the most this server takes (--max-sessions); try again later"),
             ));
-        }
+        };
         let rig = StereoRig::from_file(&hello.rig)
             .map_err(|e| ProtocolError::new(ErrorCode::BadCalibration, format!("rig: {e}")))?;
         if (hello.image.width, hello.image.height) != (rig.width, rig.height) {
@@ -302,12 +308,25 @@ impl Connection {
             },
         });
         let recorder = match &self.hub.options.record_dir {
-            Some(dir) => Some(Recorder::start(
-                dir.join(format!("{id}-{started_unix_ms}")),
-                &rig,
-                pipeline.config(),
-                self.durable_ack(&shared),
-            )?),
+            Some(dir) => {
+                // Creating and syncing files blocks: off the network threads.
+                let (dir, rig, config) = (
+                    dir.join(format!("{id}-{started_unix_ms}")),
+                    rig.clone(),
+                    pipeline.config().clone(),
+                );
+                let ack = self.durable_ack(&shared);
+                let started =
+                    tokio::task::spawn_blocking(move || Recorder::start(dir, &rig, &config, ack))
+                        .await
+                        .map_err(|e| {
+                            ProtocolError::new(
+                                ErrorCode::Internal,
+                                format!("cannot start the recorder: {e}"),
+                            )
+                        })?;
+                Some(started?)
+            }
             None => None,
         };
         let (done_tx, worker_done) = oneshot::channel();
@@ -356,6 +375,7 @@ impl Connection {
             queue,
             last_index: Default::default(),
             worker_done,
+            _slot: slot,
         });
         Ok(())
     }
@@ -802,6 +822,7 @@ impl Recorder {
         let toml = dir.join("mrptv.toml");
         std::fs::write(&toml, crate::config::to_toml(config))
             .and_then(|()| std::fs::File::open(&toml)?.sync_all())
+            .and_then(|()| std::fs::File::open(&dir)?.sync_all())
             .map_err(|e| cannot(e.to_string()))?;
         let (tx, rx) = std_mpsc::sync_channel::<RecordedFrame>(8);
         let thread = std::thread::Builder::new()

@@ -199,6 +199,21 @@ pub(crate) struct Hub {
     /// Session pipeline threads still running.
     workers: AtomicUsize,
     workers_changed: Notify,
+    /// Sessions started or starting, against `max_sessions`.
+    session_slots: AtomicUsize,
+    /// Serialises viewers' subscription changes, so the per-session limit cannot be overrun by
+    /// viewers subscribing at the same moment.
+    pub subscribing: Mutex<()>,
+}
+
+/// A place among `max_sessions`, held by a session from before its hello is accepted until it
+/// ends; freed when dropped.
+pub(crate) struct SessionSlot(Arc<Hub>);
+
+impl Drop for SessionSlot {
+    fn drop(&mut self) {
+        self.0.session_slots.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 /// Held by each session's pipeline thread; shutdown waits until all are dropped.
@@ -235,7 +250,20 @@ impl Hub {
             connections_changed: Notify::new(),
             workers: AtomicUsize::new(0),
             workers_changed: Notify::new(),
+            session_slots: AtomicUsize::new(0),
+            subscribing: Mutex::new(()),
         }
+    }
+
+    /// A session slot, or `None` when `max_sessions` are taken (checked and taken atomically).
+    pub fn reserve_session(self: &Arc<Self>) -> Option<SessionSlot> {
+        let max = self.options.max_sessions;
+        self.session_slots
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| SessionSlot(Arc::clone(self)))
     }
 
     pub fn worker(self: &Arc<Self>) -> WorkerGuard {
@@ -396,6 +424,9 @@ pub async fn run(
     })
 }
 
+/// Largest message a viewer may send.
+const VIEWER_MESSAGE_BYTES: usize = 64 << 10;
+
 fn router(hub: Arc<Hub>) -> Router {
     Router::new()
         .route("/", get(web::index))
@@ -405,7 +436,21 @@ fn router(hub: Arc<Hub>) -> Router {
         .route("/v1/sessions", get(sessions))
         .route("/v1/ingest", get(ingest_upgrade))
         .route("/v1/watch", get(watch_upgrade))
+        .layer(axum::middleware::map_response(one_request_per_connection))
         .with_state(hub)
+}
+
+/// Plain HTTP requests get `Connection: close`: each connection carries one request (or one
+/// WebSocket upgrade), so the request-head deadline of `guard` covers every request a client
+/// makes, and a client cannot park a keep-alive connection and trickle its next request.
+async fn one_request_per_connection(mut response: Response) -> Response {
+    if response.status() != StatusCode::SWITCHING_PROTOCOLS {
+        response.headers_mut().insert(
+            header::CONNECTION,
+            header::HeaderValue::from_static("close"),
+        );
+    }
+    response
 }
 
 /// `?token=SECRET`, for clients that cannot set an `Authorization` header.
@@ -465,7 +510,9 @@ async fn watch_upgrade(
     if let Some(refused) = refusal(&hub, access::Role::Watch, &headers, &query) {
         return refused;
     }
-    ws.max_message_size(1 << 20)
+    // Viewers send small JSON requests: a frame must not buffer more than a message may hold.
+    ws.max_message_size(VIEWER_MESSAGE_BYTES)
+        .max_frame_size(VIEWER_MESSAGE_BYTES)
         .on_upgrade(move |socket| watch::serve_viewer(socket, hub))
 }
 

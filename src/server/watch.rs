@@ -3,6 +3,7 @@
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use futures_util::{SinkExt, StreamExt};
@@ -108,7 +109,7 @@ where
     let mut reply = Some(sessions());
     let mut lagged: u64 = 0;
     let idle_timeout = hub.options.idle_timeout;
-    let mut keepalive = tokio::time::interval(idle_timeout / 3);
+    let mut keepalive = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
     keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     keepalive.tick().await;
     let mut last_heard = tokio::time::Instant::now();
@@ -243,6 +244,10 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
                 )
                 .to_message();
             };
+            let _one_at_a_time = hub
+                .subscribing
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner());
             let already = viewer.subscription.as_ref().map(|s| s.target) == Some(target);
             let max = hub.options.max_viewers_per_session;
             if !already && viewers_of(hub, target) >= max {
