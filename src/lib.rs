@@ -14,6 +14,8 @@
 //!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity
 //!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
 //! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
+//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, and a
+//!   `rig.json` lens model fitted to its unprojection tables (groundwork of `mrptv hl2ss`).
 //! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
 //! - [`eval`]: scores velocities against truth.
 //! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
@@ -42,6 +44,7 @@ pub mod eval;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod geometry;
+pub mod hl2ss;
 #[cfg(feature = "service")]
 pub mod load;
 #[cfg(feature = "service")]
