@@ -339,6 +339,38 @@ impl VlcCalibration {
         b
     }
 
+    /// What hl2ss would send for a known camera (fake servers and tests): every pixel centre
+    /// unprojected (NaN where the model cannot invert), the extrinsics, and placeholder maps.
+    pub fn from_camera(camera: &CameraModel, camera_from_node: &Isometry3<f64>) -> Self {
+        let mut uv2x = Vec::with_capacity(VLC_PIXELS);
+        let mut uv2y = Vec::with_capacity(VLC_PIXELS);
+        for v in 0..VLC_HEIGHT {
+            for u in 0..VLC_WIDTH {
+                let (x, y) = camera
+                    .unproject(crate::geometry::PixelPoint {
+                        x: f64::from(u),
+                        y: f64::from(v),
+                    })
+                    .unwrap_or((f64::NAN, f64::NAN));
+                uv2x.push(x as f32);
+                uv2y.push(y as f32);
+            }
+        }
+        Self {
+            uv2x,
+            uv2y,
+            extrinsics: row_vector_from_isometry(camera_from_node),
+            mapx: vec![0.0; VLC_PIXELS],
+            mapy: vec![0.0; VLC_PIXELS],
+            k: [
+                camera.fx as f32,
+                camera.fy as f32,
+                camera.cx as f32,
+                camera.cy as f32,
+            ],
+        }
+    }
+
     /// The camera's pose on the rig node, column-vector: `point_in_camera = camera_from_rig *
     /// point_in_rig`.
     pub fn camera_from_rig_node(&self) -> Result<Isometry3<f64>, Hl2ssError> {
@@ -556,8 +588,9 @@ pub struct Pairer {
     pub unpaired_right: u64,
 }
 
-/// Frames held while waiting for a partner, per camera.
-const PAIRING_WINDOW: usize = 8;
+/// How long a frame waits for its partner when the other camera has sent nothing newer (its
+/// stream stalled or lags), ticks: a second.
+const PAIRING_PATIENCE_TICKS: u64 = 10_000_000;
 
 impl Pairer {
     pub fn new(tolerance_ticks: u64) -> Self {
@@ -598,13 +631,33 @@ impl Pairer {
         }
     }
 
-    /// Frames held beyond the window are given up on (one camera's stream has stalled).
+    /// At the end of the streams: whatever waits for a partner never gets one.
+    pub fn flush(&mut self) {
+        self.unpaired_left += self.left.len() as u64;
+        self.unpaired_right += self.right.len() as u64;
+        self.left.clear();
+        self.right.clear();
+    }
+
+    /// Frames a second older than the newest frame of either camera are given up on: one
+    /// camera's stream has stalled. (A lagging stream's frames still pair when they come.)
     pub fn trim(&mut self) {
-        while self.left.len() > PAIRING_WINDOW {
+        let newest = [self.left.back(), self.right.back()]
+            .into_iter()
+            .flatten()
+            .map(|f| f.timestamp)
+            .max()
+            .unwrap_or(0);
+        let oldest_kept = newest.saturating_sub(PAIRING_PATIENCE_TICKS);
+        while self.left.front().is_some_and(|f| f.timestamp < oldest_kept) {
             self.left.pop_front();
             self.unpaired_left += 1;
         }
-        while self.right.len() > PAIRING_WINDOW {
+        while self
+            .right
+            .front()
+            .is_some_and(|f| f.timestamp < oldest_kept)
+        {
             self.right.pop_front();
             self.unpaired_right += 1;
         }
@@ -645,11 +698,21 @@ mod tests {
         assert!(p.push_right(at(2_333_333)).is_none());
         assert!(p.push_left(at(2_333_300)).is_some());
         assert_eq!((p.unpaired_left, p.unpaired_right), (1, 1));
-        for t in 0..20 {
+        // The right stream stalls: left frames wait a second for it, then are given up on.
+        for t in 0..40 {
             p.push_left(at(3_000_000 + t * 333_333));
         }
         p.trim();
-        assert_eq!(p.unpaired_left, 1 + 12);
+        assert_eq!(
+            p.unpaired_left,
+            1 + 9,
+            "frames older than a second before the newest"
+        );
+        // A lagging right stream still pairs with the frames kept.
+        let (l, _) = p
+            .push_right(at(3_000_000 + 9 * 333_333))
+            .expect("late but paired");
+        assert_eq!(l.timestamp, 3_000_000 + 9 * 333_333);
     }
 
     #[test]
@@ -706,22 +769,9 @@ mod tests {
         assert!(VlcFrame::decode(t, &payload[1..], None).is_err());
     }
 
-    /// The table hl2ss would send for a camera: each pixel centre unprojected.
     fn table(camera: &CameraModel) -> (Vec<f32>, Vec<f32>) {
-        let mut x = Vec::with_capacity(VLC_PIXELS);
-        let mut y = Vec::with_capacity(VLC_PIXELS);
-        for v in 0..VLC_HEIGHT {
-            for u in 0..VLC_WIDTH {
-                let p = camera.unproject(PixelPoint {
-                    x: f64::from(u),
-                    y: f64::from(v),
-                });
-                let (a, b) = p.unwrap_or((f64::NAN, f64::NAN));
-                x.push(a as f32);
-                y.push(b as f32);
-            }
-        }
-        (x, y)
+        let c = VlcCalibration::from_camera(camera, &Isometry3::identity());
+        (c.uv2x, c.uv2y)
     }
 
     #[test]
@@ -758,17 +808,7 @@ mod tests {
             UnitQuaternion::from_euler_angles(0.0, 0.2, 1.5),
         );
         let right_from_node = truth.right_from_left * left_from_node;
-        let calibration = |camera: &CameraModel, from_node: &Isometry3<f64>| {
-            let (uv2x, uv2y) = table(camera);
-            VlcCalibration {
-                uv2x,
-                uv2y,
-                extrinsics: row_vector_from_isometry(from_node),
-                mapx: vec![0.0; VLC_PIXELS],
-                mapy: vec![0.0; VLC_PIXELS],
-                k: [1.0, 2.0, 3.0, 4.0],
-            }
-        };
+        let calibration = VlcCalibration::from_camera;
         let left = calibration(&truth.left, &left_from_node);
         let right = calibration(&truth.right, &right_from_node);
         let left = VlcCalibration::decode(&left.encode()).expect("round trip");

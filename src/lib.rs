@@ -46,6 +46,10 @@ pub mod fuzzing;
 pub mod geometry;
 pub mod hl2ss;
 #[cfg(feature = "service")]
+pub mod hl2ss_bridge;
+#[cfg(feature = "service")]
+pub mod hl2ss_holograms;
+#[cfg(feature = "service")]
 pub mod load;
 #[cfg(feature = "service")]
 pub mod offline;

@@ -298,6 +298,69 @@ enum Command {
         )]
         secret: Option<String>,
     },
+    /// Stream a HoloLens 2 running the hl2ss app to a server: its front cameras, calibration and
+    /// poses, as a headset session.
+    #[command(
+        after_help = "hl2ss: github.com/jdibenes/hl2ss (the app must be running on the HoloLens)."
+    )]
+    Hl2ss {
+        /// The HoloLens's address.
+        #[arg(long)]
+        host: String,
+        /// hl2ss's LeftFront visible-light camera port.
+        #[arg(long, default_value_t = mrptv::hl2ss::LEFT_FRONT_PORT)]
+        left_port: u16,
+        /// hl2ss's RightFront visible-light camera port.
+        #[arg(long, default_value_t = mrptv::hl2ss::RIGHT_FRONT_PORT)]
+        right_port: u16,
+        /// The mrptv server's headset endpoint.
+        #[arg(long, default_value = "ws://127.0.0.1:8770/v1/ingest")]
+        url: String,
+        /// Left and right frames further apart than this are not a pair, milliseconds.
+        #[arg(long, default_value_t = 5.0)]
+        pair_tolerance_ms: f64,
+        /// Fit the lens model to every N-th pixel of the calibration tables, each way.
+        #[arg(long, default_value_t = 8)]
+        fit_step: usize,
+        /// Write the refined vectors received: frame,t_s,track_id,x,y,z,u,v,w (hl2ss's world).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The server's ingest secret (see `serve --ingest-secret`).
+        #[arg(
+            long,
+            env = "MRPTV_INGEST_SECRET",
+            hide_env_values = true,
+            value_name = "SECRET"
+        )]
+        secret: Option<String>,
+        /// For wss:// URLs: also trust the certificates in this PEM file.
+        #[arg(long, value_name = "PEM")]
+        ca_cert: Option<PathBuf>,
+        /// Draw the live vectors in the wearer's view through hl2ss's Unity plugin (its message
+        /// queue must be running: the hl2ss Unity app, not the plain one).
+        #[arg(long)]
+        holograms: bool,
+        /// The Unity plugin's message-queue port.
+        #[arg(long, default_value_t = mrptv::hl2ss_holograms::MESSAGE_QUEUE_PORT)]
+        mq_port: u16,
+        /// Hologram updates per second, at most (each is one display list).
+        #[arg(long, default_value_t = 10.0)]
+        hologram_rate: f64,
+        /// Arrows in the wearer's view, at most (created once, then reused).
+        #[arg(long, default_value_t = 150)]
+        hologram_arrows: usize,
+        /// With --holograms, the server's watch secret (vectors are followed as a viewer).
+        #[arg(
+            long,
+            env = "MRPTV_WATCH_SECRET",
+            hide_env_values = true,
+            value_name = "SECRET"
+        )]
+        watch_secret: Option<String>,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Load-test `serve` on this machine: a server on 127.0.0.1, N synthetic headsets and M
     /// viewers for a while; reports frames processed and dropped, latency and server memory.
     Load {
@@ -685,6 +748,139 @@ fn run(cli: Cli) -> Result<()> {
                 }
             }
             print_replay(&reports, json)?;
+        }
+        Command::Hl2ss {
+            host,
+            left_port,
+            right_port,
+            url,
+            pair_tolerance_ms,
+            fit_step,
+            out,
+            secret,
+            ca_cert,
+            holograms,
+            mq_port,
+            hologram_rate,
+            hologram_arrows,
+            watch_secret,
+            json,
+        } => {
+            if !(hologram_rate.is_finite() && hologram_rate > 0.0 && hologram_rate <= 60.0) {
+                bail!("--hologram-rate must be between 0 and 60 updates a second");
+            }
+            if !(pair_tolerance_ms.is_finite() && pair_tolerance_ms > 0.0) {
+                bail!("--pair-tolerance-ms must be positive, not {pair_tolerance_ms}");
+            }
+            init_logging("warn");
+            let endpoints = mrptv::hl2ss_bridge::Hl2ssEndpoints {
+                host,
+                left_port,
+                right_port,
+                connect_timeout: std::time::Duration::from_secs(10),
+            };
+            let rig = mrptv::hl2ss_bridge::calibrate(&endpoints, fit_step)?;
+            // Before any frame: a missing Unity plugin is said at once.
+            let painter = if holograms {
+                Some(mrptv::hl2ss_holograms::Painter::connect(
+                    &endpoints.host,
+                    mq_port,
+                    hologram_arrows,
+                    hologram_rate,
+                )?)
+            } else {
+                None
+            };
+            for (camera, fit) in [("left", &rig.left_fit), ("right", &rig.right_fit)] {
+                eprintln!(
+                    "{camera} camera: lens model fitted to hl2ss's calibration over {} pixels: residual {:.4} px rms, {:.4} px max",
+                    fit.pixels_used, fit.rms_px, fit.max_px
+                );
+            }
+            let source = mrptv::hl2ss_bridge::Hl2ssSource::open(
+                &endpoints,
+                rig,
+                std::time::Duration::from_secs_f64(pair_tolerance_ms / 1e3),
+            )?;
+            let counters = source.counters();
+            let options = ReplayOptions {
+                client_name: format!("mrptv hl2ss bridge ({})", endpoints.host),
+                rate: Rate::Max,
+                max_in_flight: 2,
+                keep_batches: out.is_some(),
+                tls: match &ca_cert {
+                    Some(path) => Some(mrptv::tls::client_config(Some(path))?),
+                    None => None,
+                },
+                secret,
+                ..ReplayOptions::new(url.clone())
+            };
+            let watch_url = url.replace("/v1/ingest", "/v1/watch");
+            let (report, painted) = runtime()?.block_on(async {
+                let (done_tx, done_rx) = tokio::sync::watch::channel(false);
+                let painting = painter.map(|painter| {
+                    let mut done = done_rx.clone();
+                    tokio::spawn(mrptv::hl2ss_holograms::follow_and_paint(
+                        watch_url,
+                        watch_secret,
+                        options.tls.clone(),
+                        options.client_name.clone(),
+                        painter,
+                        async move {
+                            let _ = done.wait_for(|d| *d).await;
+                        },
+                    ))
+                });
+                let report = client::replay(source, &options, termination(), |_| {}).await;
+                let _ = done_tx.send(true);
+                let painted = match painting {
+                    Some(task) => Some(task.await.map_err(|e| e.to_string()).and_then(|r| r)),
+                    None => None,
+                };
+                (report, painted)
+            });
+            let report = report.with_context(|| format!("streaming to {url}"))?;
+            let painted = match painted {
+                Some(Ok(p)) => Some((p.updates, p.refused)),
+                Some(Err(e)) => {
+                    eprintln!("holograms: {e}");
+                    None
+                }
+                None => None,
+            };
+            if let Some(path) = &out {
+                let mut file = create_output(path)?;
+                client::write_batches_csv(&mut file, &report.refined)
+                    .and_then(|()| std::io::Write::flush(&mut file))
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            let bridge = *counters.lock().unwrap_or_else(|p| p.into_inner());
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({
+                        "bridge": bridge,
+                        "session": report.session,
+                        "frames_sent": report.frames_sent,
+                        "causal_vectors": report.causal_vectors,
+                        "refined_vectors": report.refined_vectors,
+                        "errors": report.errors.len(),
+                        "frames_processed": report.counters.map(|c| c.frames_processed),
+                        "hologram_updates": painted.map(|p| p.0),
+                        "hologram_commands_refused": painted.map(|p| p.1),
+                    })
+                );
+            } else {
+                println!(
+                    "hl2ss: {} left and {} right frames, {} pairs ({} left and {} right unpaired, {} without a pose)",
+                    bridge.left_frames, bridge.right_frames, bridge.pairs, bridge.unpaired_left,
+                    bridge.unpaired_right, bridge.unposed
+                );
+                print_replay(&[report], false)?;
+                if let Some((updates, refused)) = painted {
+                    println!("holograms: {updates} updates, {refused} commands refused");
+                }
+            }
         }
         Command::Load {
             headsets,

@@ -366,7 +366,7 @@ fn blueprint() -> rerun::blueprint::Blueprint {
 
 /// Speed colour map: a perceptually ordered ramp (viridis' end points and middle), from 0 to
 /// `max` m/s, saturating above.
-fn speed_color(speed: f64, max: f64) -> [u8; 3] {
+pub(crate) fn speed_color(speed: f64, max: f64) -> [u8; 3] {
     const STOPS: [[f64; 3]; 5] = [
         [68.0, 1.0, 84.0],
         [59.0, 82.0, 139.0],
@@ -386,7 +386,7 @@ fn speed_color(speed: f64, max: f64) -> [u8; 3] {
 }
 
 /// A "nice" upper bound (1, 2 or 5 x 10^k) at or above `x`.
-fn nice_ceiling(x: f64) -> f64 {
+pub(crate) fn nice_ceiling(x: f64) -> f64 {
     if !(x > 0.0 && x.is_finite()) {
         return 1.0;
     }

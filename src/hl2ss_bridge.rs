@@ -1,0 +1,326 @@
+//! `mrptv hl2ss`: a HoloLens 2 running the hl2ss app as a headset of `mrptv serve`. Fetches both
+//! front cameras' calibrations, fits the `rig.json` lens model to them, then reads both raw
+//! streams with poses, pairs frames by timestamp and hands them to the reference client
+//! ([`crate::client::replay`]), which streams them to the server like any WebSocket headset.
+//! Formats: [`crate::hl2ss`].
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::sync::mpsc as std_mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use nalgebra::Isometry3;
+use serde::Serialize;
+
+use crate::client::{ClientError, FrameSource, SourceFrame};
+use crate::geometry::StereoRig;
+use crate::hl2ss::{
+    decode_header, fit_lens, isometry_from_row_vector, stereo_rig, LensFit, Pairer, StreamConfig,
+    VlcCalibration, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES, TICKS_PER_SECOND,
+    VLC_HEIGHT, VLC_WIDTH,
+};
+
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("{camera} camera at {addr}: {error}")]
+    Io {
+        camera: &'static str,
+        addr: String,
+        error: std::io::Error,
+    },
+    #[error("{camera} camera: {error}")]
+    Format {
+        camera: &'static str,
+        error: crate::hl2ss::Hl2ssError,
+    },
+    #[error("{0}")]
+    Rig(crate::hl2ss::Hl2ssError),
+}
+
+/// Where the two cameras stream from.
+#[derive(Debug, Clone)]
+pub struct Hl2ssEndpoints {
+    pub host: String,
+    pub left_port: u16,
+    pub right_port: u16,
+    pub connect_timeout: Duration,
+}
+
+impl Hl2ssEndpoints {
+    fn addr(&self, camera: &'static str, port: u16) -> Result<SocketAddr, BridgeError> {
+        let name = format!("{}:{port}", self.host);
+        name.to_socket_addrs()
+            .map_err(|error| BridgeError::Io {
+                camera,
+                addr: name.clone(),
+                error,
+            })?
+            .next()
+            .ok_or_else(|| BridgeError::Io {
+                camera,
+                addr: name.clone(),
+                error: std::io::Error::new(std::io::ErrorKind::NotFound, "no address"),
+            })
+    }
+
+    fn connect(&self, camera: &'static str, port: u16) -> Result<TcpStream, BridgeError> {
+        let addr = self.addr(camera, port)?;
+        let io = |error| BridgeError::Io {
+            camera,
+            addr: addr.to_string(),
+            error,
+        };
+        let stream = TcpStream::connect_timeout(&addr, self.connect_timeout).map_err(io)?;
+        stream.set_nodelay(true).map_err(io)?;
+        Ok(stream)
+    }
+}
+
+/// The rig hl2ss's calibration gives, and how well the lens model fits it.
+#[derive(Debug, Clone)]
+pub struct BridgeRig {
+    pub rig: StereoRig,
+    /// hl2ss poses are of the rig node: `world_from_rig = world_from_node * node_from_left`.
+    pub node_from_left: Isometry3<f64>,
+    pub left_fit: LensFit,
+    pub right_fit: LensFit,
+}
+
+fn fetch_calibration(
+    endpoints: &Hl2ssEndpoints,
+    camera: &'static str,
+    port: u16,
+) -> Result<VlcCalibration, BridgeError> {
+    let mut stream = endpoints.connect(camera, port)?;
+    let io = |error| BridgeError::Io {
+        camera,
+        addr: format!("{}:{port}", endpoints.host),
+        error,
+    };
+    // The table is 4.9 MB: generous, but not endless.
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .map_err(io)?;
+    stream
+        .write_all(&StreamConfig::calibration().encode())
+        .map_err(io)?;
+    let mut bytes = vec![0u8; 4 * CALIBRATION_FLOATS];
+    stream.read_exact(&mut bytes).map_err(io)?;
+    VlcCalibration::decode(&bytes).map_err(|error| BridgeError::Format { camera, error })
+}
+
+/// Fetches both calibrations and fits the lens model (every `fit_step`-th pixel each way).
+pub fn calibrate(endpoints: &Hl2ssEndpoints, fit_step: usize) -> Result<BridgeRig, BridgeError> {
+    let left = fetch_calibration(endpoints, "left", endpoints.left_port)?;
+    let right = fetch_calibration(endpoints, "right", endpoints.right_port)?;
+    let fit = |camera: &'static str, c: &VlcCalibration| {
+        fit_lens(&c.uv2x, &c.uv2y, VLC_WIDTH, VLC_HEIGHT, fit_step)
+            .map_err(|error| BridgeError::Format { camera, error })
+    };
+    let (left_fit, right_fit) = (fit("left", &left)?, fit("right", &right)?);
+    let (rig, left_from_node) =
+        stereo_rig(&left_fit, &left, &right_fit, &right).map_err(BridgeError::Rig)?;
+    Ok(BridgeRig {
+        rig,
+        node_from_left: left_from_node.inverse(),
+        left_fit,
+        right_fit,
+    })
+}
+
+/// What the bridge saw of the streams.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct BridgeCounters {
+    pub left_frames: u64,
+    pub right_frames: u64,
+    pub pairs: u64,
+    pub unpaired_left: u64,
+    pub unpaired_right: u64,
+    /// Pairs dropped because hl2ss had no pose for them (tracking lost): their vectors would be
+    /// in no frame at all.
+    pub unposed: u64,
+}
+
+enum Side {
+    Left,
+    Right,
+}
+
+/// Reads one camera's raw frames with poses until the stream ends.
+fn read_stream(
+    mut stream: TcpStream,
+    camera: &'static str,
+    side: fn(VlcFrame) -> (Side, VlcFrame),
+    frames: std_mpsc::SyncSender<Result<(Side, VlcFrame), BridgeError>>,
+) {
+    let format = |error| BridgeError::Format { camera, error };
+    loop {
+        let mut head = [0u8; HEADER_BYTES];
+        if stream.read_exact(&mut head).is_err() {
+            return; // the stream ended
+        }
+        let (timestamp, size) = decode_header(&head);
+        let frame = if size > 4 * crate::hl2ss::VLC_PIXELS {
+            Err(format(crate::hl2ss::Hl2ssError::Frame(format!(
+                "payload of {size} bytes announced: not a raw visible-light frame"
+            ))))
+        } else {
+            let mut payload = vec![0u8; size + POSE_BYTES];
+            match stream.read_exact(&mut payload) {
+                Err(_) => return,
+                Ok(()) => VlcFrame::decode(timestamp, &payload[..size], Some(&payload[size..]))
+                    .map(side)
+                    .map_err(format),
+            }
+        };
+        let failed = frame.is_err();
+        if frames.send(frame).is_err() || failed {
+            return;
+        }
+    }
+}
+
+/// Paired frames of a live hl2ss, as a headset source.
+pub struct Hl2ssSource {
+    rig: BridgeRig,
+    frames: std_mpsc::Receiver<Result<(Side, VlcFrame), BridgeError>>,
+    pairer: Pairer,
+    first_timestamp: Option<u64>,
+    last_t_s: f64,
+    next_index: u64,
+    counters: Arc<Mutex<BridgeCounters>>,
+}
+
+impl Hl2ssSource {
+    /// Opens both streams (raw, with poses).
+    pub fn open(
+        endpoints: &Hl2ssEndpoints,
+        rig: BridgeRig,
+        pair_tolerance: Duration,
+    ) -> Result<Self, BridgeError> {
+        let (tx, frames) = std_mpsc::sync_channel(8);
+        for (camera, port, side) in [
+            (
+                "left",
+                endpoints.left_port,
+                (|f| (Side::Left, f)) as fn(VlcFrame) -> (Side, VlcFrame),
+            ),
+            ("right", endpoints.right_port, |f| (Side::Right, f)),
+        ] {
+            let mut stream = endpoints.connect(camera, port)?;
+            stream
+                .write_all(&StreamConfig::raw_with_poses().encode())
+                .map_err(|error| BridgeError::Io {
+                    camera,
+                    addr: format!("{}:{port}", endpoints.host),
+                    error,
+                })?;
+            let tx = tx.clone();
+            std::thread::Builder::new()
+                .name(format!("hl2ss-{camera}"))
+                .spawn(move || read_stream(stream, camera, side, tx))
+                .map_err(|error| BridgeError::Io {
+                    camera,
+                    addr: format!("{}:{port}", endpoints.host),
+                    error,
+                })?;
+        }
+        Ok(Self {
+            rig,
+            frames,
+            pairer: Pairer::new((pair_tolerance.as_secs_f64() * TICKS_PER_SECOND) as u64),
+            first_timestamp: None,
+            last_t_s: f64::NEG_INFINITY,
+            next_index: 0,
+            counters: Default::default(),
+        })
+    }
+
+    /// Live counters, readable while the source runs on the client's reader thread.
+    pub fn counters(&self) -> Arc<Mutex<BridgeCounters>> {
+        Arc::clone(&self.counters)
+    }
+
+    fn count(&self, f: impl FnOnce(&mut BridgeCounters)) {
+        f(&mut self.counters.lock().unwrap_or_else(|p| p.into_inner()));
+    }
+
+    /// A pair as a stereo frame; `None` (counted) when it has no usable pose or time.
+    fn convert(&mut self, left: VlcFrame, right: VlcFrame) -> Option<SourceFrame> {
+        let world_from_node = left
+            .pose
+            .and_then(|m| isometry_from_row_vector("pose", &m).ok());
+        let Some(world_from_node) = world_from_node else {
+            self.count(|c| c.unposed += 1);
+            return None;
+        };
+        let first = *self.first_timestamp.get_or_insert(left.timestamp);
+        let t_s = left.timestamp.saturating_sub(first) as f64 / TICKS_PER_SECOND;
+        if t_s <= self.last_t_s {
+            return None;
+        }
+        self.last_t_s = t_s;
+        let index = self.next_index;
+        self.next_index += 1;
+        Some(SourceFrame {
+            index,
+            t_s,
+            world_from_rig: Some(world_from_node * self.rig.node_from_left),
+            left: left.pixels,
+            right: right.pixels,
+        })
+    }
+}
+
+impl FrameSource for Hl2ssSource {
+    fn rig(&self) -> &StereoRig {
+        &self.rig.rig
+    }
+
+    fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>> {
+        loop {
+            let Ok(received) = self.frames.recv() else {
+                // Both streams ended.
+                self.pairer.flush();
+                let (l, r) = (self.pairer.unpaired_left, self.pairer.unpaired_right);
+                self.count(|c| {
+                    c.unpaired_left = l;
+                    c.unpaired_right = r;
+                });
+                return None;
+            };
+            let (side, frame) = match received {
+                Ok(f) => f,
+                Err(e) => return Some(Err(ClientError::Protocol(e.to_string()))),
+            };
+            let pair = match side {
+                Side::Left => {
+                    self.count(|c| c.left_frames += 1);
+                    self.pairer.push_left(frame)
+                }
+                Side::Right => {
+                    self.count(|c| c.right_frames += 1);
+                    self.pairer.push_right(frame)
+                }
+            };
+            self.pairer.trim();
+            let (unpaired_left, unpaired_right) =
+                (self.pairer.unpaired_left, self.pairer.unpaired_right);
+            self.count(|c| {
+                c.unpaired_left = unpaired_left;
+                c.unpaired_right = unpaired_right;
+            });
+            if let Some((left, right)) = pair {
+                self.count(|c| c.pairs += 1);
+                if let Some(frame) = self.convert(left, right) {
+                    return Some(Ok(frame));
+                }
+            }
+        }
+    }
+
+    fn frame_count(&self) -> Option<usize> {
+        None
+    }
+}

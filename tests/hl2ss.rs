@@ -1,0 +1,396 @@
+//! `mrptv hl2ss` against a fake hl2ss: two TCP servers speaking hl2ss's documented wire format
+//! (calibration on request, then raw 640x480 frames with their trailer and a row-vector rig-node
+//! pose per frame) from a synthetic HoloLens-like recording (distorted lenses, right camera
+//! rolled 180 degrees, divergent axes). One right frame is withheld, as a lost frame would be.
+//! The bridge streams to a real server that records the session; the vectors it gets back must
+//! be those of `mrptv process` on that recording, and the recording must hold the original
+//! images, poses and (fitted) calibration.
+
+use std::io::{Read, Write};
+use std::net::TcpListener;
+use std::path::Path;
+
+use mrptv::hl2ss::{
+    row_vector_from_isometry, StreamConfig, StreamMode, VlcCalibration, VlcFrame, VLC_PIXELS,
+};
+use mrptv::hl2ss_holograms as hologram;
+use mrptv::recording::Recording;
+use mrptv::server::ServerOptions;
+use mrptv::synth::Scenario;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+mod common;
+use common::*;
+
+const LOST_RIGHT_FRAME: usize = 7;
+const FIRST_TICKS: u64 = 133_000_000_000;
+
+/// One fake camera: answers calibration requests and streams the recording's frames.
+fn fake_camera(
+    rec: Recording,
+    right: bool,
+    camera_from_node: Isometry3<f64>,
+    node_from_left: Isometry3<f64>,
+) -> u16 {
+    let listener = TcpListener::bind("127.0.0.1:0").expect("port");
+    let port = listener.local_addr().expect("addr").port();
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { return };
+            let mut first = [0u8; 1];
+            if stream.read_exact(&mut first).is_err() {
+                continue;
+            }
+            if first[0] == StreamMode::Calibration as u8 {
+                let camera = if right { rec.rig.right } else { rec.rig.left };
+                let calibration = VlcCalibration::from_camera(&camera, &camera_from_node);
+                let _ = stream.write_all(&calibration.encode());
+                continue;
+            }
+            let mut rest = [0u8; 8];
+            stream.read_exact(&mut rest).expect("configuration");
+            let mut head = [0u8; 9];
+            head[0] = first[0];
+            head[1..].copy_from_slice(&rest);
+            let mut options = vec![0u8; StreamConfig::options_bytes(&head)];
+            stream.read_exact(&mut options).expect("options");
+            let config = StreamConfig::decode(&[&head[..], &options].concat()).expect("config");
+            assert_eq!(
+                config,
+                StreamConfig::raw_with_poses(),
+                "the bridge asks for raw + poses"
+            );
+            for (i, entry) in rec.frames.iter().enumerate() {
+                if right && i == LOST_RIGHT_FRAME {
+                    continue;
+                }
+                let (l, r) = rec.load(entry).expect("frame");
+                let world_from_rig = entry.world_from_rig.expect("a pose per frame");
+                let world_from_node = world_from_rig * node_from_left.inverse();
+                let frame = VlcFrame {
+                    // hl2ss's two cameras are triggered together; their stamps differ slightly.
+                    timestamp: FIRST_TICKS
+                        + (entry.t_s * 1e7).round() as u64
+                        + if right { 120 } else { 0 },
+                    pixels: if right { r } else { l },
+                    sensor_ticks: i as u64,
+                    exposure: 1000,
+                    gain: 1,
+                    pose: Some(row_vector_from_isometry(&world_from_node)),
+                };
+                if stream.write_all(&frame.encode()).is_err() {
+                    break;
+                }
+                // hl2ss streams at the cameras' 30 Hz.
+                std::thread::sleep(std::time::Duration::from_millis(33));
+            }
+            // End of the stream: hl2ss closes when the app stops.
+        }
+    });
+    port
+}
+
+type Commands = std::sync::Arc<std::sync::Mutex<Vec<(u32, Vec<u8>)>>>;
+
+/// A fake message queue of hl2ss's Unity plugin: records every command, answers each one (a new
+/// key for a create, 1 otherwise) as the plugin does.
+fn fake_message_queue() -> (u16, Commands) {
+    let listener = TcpListener::bind("127.0.0.1:0").expect("port");
+    let port = listener.local_addr().expect("addr").port();
+    let commands: Commands = Default::default();
+    let record = commands.clone();
+    std::thread::spawn(move || {
+        let mut next_key = 1000u32;
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { return };
+            loop {
+                let mut head = [0u8; 8];
+                if stream.read_exact(&mut head).is_err() {
+                    break;
+                }
+                let id = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+                let size = u32::from_le_bytes([head[4], head[5], head[6], head[7]]) as usize;
+                assert!(size < 1 << 20, "command {id} of {size} bytes");
+                let mut data = vec![0u8; size];
+                stream.read_exact(&mut data).expect("command data");
+                let answer = if id == hologram::CREATE_PRIMITIVE {
+                    next_key += 1;
+                    next_key
+                } else {
+                    1
+                };
+                record.lock().expect("lock").push((id, data));
+                if stream.write_all(&answer.to_le_bytes()).is_err() {
+                    break;
+                }
+            }
+        }
+    });
+    (port, commands)
+}
+
+fn floats(data: &[u8]) -> Vec<f32> {
+    data.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+fn max_abs(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
+    (a.to_homogeneous() - b.to_homogeneous()).abs().max()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let frames = 40;
+    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::HololensRaw, frames);
+    assert_eq!(rec.rig.width * rec.rig.height, VLC_PIXELS as u32);
+    // The left camera somewhere on the headset's rig node, the right one where the rig puts it.
+    let left_from_node = Isometry3::from_parts(
+        Translation3::new(-0.04, 0.01, -0.02),
+        UnitQuaternion::from_euler_angles(0.05, -0.3, 1.57),
+    );
+    let right_from_node = rec.rig.right_from_left * left_from_node;
+    let node_from_left = left_from_node.inverse();
+    let left_port = fake_camera(rec.clone(), false, left_from_node, node_from_left);
+    let right_port = fake_camera(rec.clone(), true, right_from_node, node_from_left);
+
+    let record = tmp.path().join("recorded");
+    let server = TestServer::start(ServerOptions {
+        record_dir: Some(record.clone()),
+        config: config.clone(),
+        ..Default::default()
+    })
+    .await;
+    let (mq_port, commands) = fake_message_queue();
+    let arrows = 50usize;
+    let live = tmp.path().join("live.csv");
+    let args = [
+        "hl2ss".to_string(),
+        "--host".into(),
+        "127.0.0.1".into(),
+        "--left-port".into(),
+        left_port.to_string(),
+        "--right-port".into(),
+        right_port.to_string(),
+        "--url".into(),
+        server.ingest(),
+        "--out".into(),
+        live.display().to_string(),
+        "--json".into(),
+        "--holograms".into(),
+        "--mq-port".into(),
+        mq_port.to_string(),
+        "--hologram-arrows".into(),
+        arrows.to_string(),
+        "--hologram-rate".into(),
+        "10".into(),
+    ];
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
+            .args(&args)
+            .env_remove("MRPTV_INGEST_SECRET")
+            .output()
+            .expect("mrptv hl2ss runs")
+    })
+    .await
+    .expect("bridge task");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    // The fit residual is reported for each camera.
+    for camera in ["left camera", "right camera"] {
+        let line = stderr
+            .lines()
+            .find(|l| l.starts_with(camera))
+            .unwrap_or_else(|| panic!("no {camera} fit in {stderr}"));
+        let rms: f64 = line
+            .split("residual ")
+            .nth(1)
+            .and_then(|r| r.split(' ').next())
+            .and_then(|r| r.parse().ok())
+            .unwrap_or_else(|| panic!("{line}"));
+        assert!(rms < 0.01, "{line}");
+    }
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).expect("a JSON summary");
+    println!("{summary}\n{stderr}");
+    let bridge = &summary["bridge"];
+    assert_eq!(bridge["left_frames"], frames as u64, "{summary}");
+    assert_eq!(bridge["right_frames"], frames as u64 - 1, "{summary}");
+    assert_eq!(bridge["pairs"], frames as u64 - 1, "{summary}");
+    assert_eq!(
+        bridge["unpaired_left"], 1,
+        "the left frame of the lost right one: {summary}"
+    );
+    assert_eq!(bridge["unpaired_right"], 0, "{summary}");
+    assert_eq!(bridge["unposed"], 0, "{summary}");
+    assert_eq!(summary["frames_processed"], frames as u64 - 1, "{summary}");
+    assert_eq!(summary["errors"], 0, "{summary}");
+    assert!(summary["refined_vectors"].as_u64() > Some(100), "{summary}");
+    server.stop().await;
+
+    // The session's recording: the original images and poses, and the fitted calibration.
+    let recorded = Recording::open(&the_only_subdir(&record)).expect("recording");
+    assert_eq!(recorded.frames.len(), frames - 1);
+    let originals: Vec<_> = rec
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != LOST_RIGHT_FRAME)
+        .map(|(_, e)| e)
+        .collect();
+    for (got, original) in recorded.frames.iter().zip(&originals) {
+        assert!((got.t_s - (original.t_s - rec.frames[0].t_s)).abs() < 1e-6);
+        let d = max_abs(
+            &got.world_from_rig.expect("posed"),
+            &original.world_from_rig.expect("posed"),
+        );
+        assert!(d < 1e-5, "frame {}: pose off by {d}", got.index);
+        assert_eq!(
+            recorded.load(got).expect("recorded"),
+            rec.load(original).expect("original"),
+            "frame {}",
+            got.index
+        );
+    }
+    let (fitted, truth) = (&recorded.rig, &rec.rig);
+    for (a, b) in [(fitted.left, truth.left), (fitted.right, truth.right)] {
+        assert!(
+            (a.fx - b.fx).abs() < 0.05 && (a.cy - b.cy).abs() < 0.05,
+            "{a:?} vs {b:?}"
+        );
+    }
+    assert!(max_abs(&fitted.right_from_left, &truth.right_from_left) < 1e-5);
+
+    // The vectors the bridge got back are what offline processing of that recording gives.
+    let offline = tmp.path().join("offline.csv");
+    let processed = std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
+        .arg("process")
+        .arg(recorded.dir.as_path())
+        .arg("--out")
+        .arg(&offline)
+        .output()
+        .expect("process runs");
+    assert!(
+        processed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&processed.stderr)
+    );
+    assert_same_rows(&live, &offline);
+
+    // The holograms: one pool, created once, then display lists at most 10 a second.
+    let commands = commands.lock().expect("lock").clone();
+    let updates = summary["hologram_updates"]
+        .as_u64()
+        .expect("hologram updates");
+    assert_eq!(summary["hologram_commands_refused"], 0, "{summary}");
+    let creates: Vec<usize> = (0..commands.len())
+        .filter(|&i| commands[i].0 == hologram::CREATE_PRIMITIVE)
+        .collect();
+    assert_eq!(creates.len(), arrows, "a pool, created once");
+    assert!(creates
+        .iter()
+        .all(|&i| i <= arrows && commands[i].1 == hologram::CYLINDER.to_le_bytes()));
+    let keys: Vec<u32> = (1001..=1000 + arrows as u32).collect();
+    let mut open = false;
+    let mut lists = 0;
+    let mut transforms = 0;
+    let offline_rows = mrptv::tables::read_tracks(&offline).expect("offline rows");
+    let (lo, hi) = offline_rows.iter().fold(
+        ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+        |(mut lo, mut hi), r| {
+            // In Unity's frame: z flipped.
+            let p = [r.position.x, r.position.y, -r.position.z];
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+            (lo, hi)
+        },
+    );
+    for (id, data) in &commands {
+        match *id {
+            hologram::BEGIN_DISPLAY_LIST => {
+                assert!(!open, "display lists do not nest");
+                open = true;
+                lists += 1;
+            }
+            hologram::END_DISPLAY_LIST => {
+                assert!(open, "an end without a begin");
+                open = false;
+            }
+            hologram::SET_WORLD_TRANSFORM => {
+                assert!(open, "transforms are batched in display lists");
+                assert_eq!(data.len(), 44);
+                let key = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+                assert!(keys.contains(&key), "an object of the pool: {key}");
+                let v = floats(&data[4..]);
+                assert!(v.iter().all(|x| x.is_finite()));
+                let q_norm = v[3..7].iter().map(|x| x * x).sum::<f32>().sqrt();
+                assert!((q_norm - 1.0).abs() < 1e-4, "unit rotation: {v:?}");
+                assert!(
+                    v[7] > 0.0 && v[8] > 0.0 && v[9] > 0.0,
+                    "positive scale: {v:?}"
+                );
+                for k in 0..3 {
+                    let c = f64::from(v[k]);
+                    assert!(
+                        c > lo[k] - 0.2 && c < hi[k] + 0.2,
+                        "arrow at {v:?} outside {lo:?}..{hi:?}"
+                    );
+                }
+                transforms += 1;
+            }
+            hologram::SET_COLOR => {
+                assert_eq!(data.len(), 20);
+                let rgba = floats(&data[4..]);
+                assert!(rgba.iter().all(|c| (0.0..=1.0).contains(c)), "{rgba:?}");
+            }
+            hologram::SET_ACTIVE => assert_eq!(data.len(), 8),
+            hologram::REMOVE => {
+                assert!(keys.contains(&u32::from_le_bytes([data[0], data[1], data[2], data[3]])))
+            }
+            hologram::CREATE_PRIMITIVE => {}
+            other => panic!("unexpected command {other}"),
+        }
+    }
+    assert!(!open);
+    // The pool's creation and hiding, then one list per update.
+    assert_eq!(lists as u64, 2 + updates);
+    // 40 frames at 30 Hz is 1.3 s: at 10 updates a second, a handful, never one per frame.
+    assert!((3..=20).contains(&updates), "{updates} updates");
+    assert!(transforms > 0);
+    let removed = commands
+        .iter()
+        .filter(|(id, _)| *id == hologram::REMOVE)
+        .count();
+    assert_eq!(removed, arrows, "the pool is removed at the end");
+}
+
+/// Two `tracks.csv` files with the same rows, values equal to float32 rounding.
+fn assert_same_rows(live: &Path, offline: &Path) {
+    let live = mrptv::tables::read_tracks(live).expect("live.csv");
+    let offline = mrptv::tables::read_tracks(offline).expect("offline.csv");
+    assert_eq!(live.len(), offline.len(), "as many vectors live as offline");
+    assert!(!live.is_empty());
+    for (a, b) in live.iter().zip(&offline) {
+        assert_eq!((a.frame, a.track_id), (b.frame, b.track_id));
+        let values = |r: &mrptv::tables::TrackRow| {
+            [
+                r.position.x,
+                r.position.y,
+                r.position.z,
+                r.velocity.x,
+                r.velocity.y,
+                r.velocity.z,
+            ]
+        };
+        for (x, y) in values(a).iter().zip(values(b)) {
+            assert!(
+                (x - y).abs() <= 1e-6 * y.abs().max(1e-3),
+                "frame {} track {}: live {x} offline {y}",
+                a.frame,
+                a.track_id
+            );
+        }
+    }
+}
