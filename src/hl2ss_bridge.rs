@@ -266,11 +266,25 @@ impl Hl2ssSource {
         Some(SourceFrame {
             index,
             t_s,
-            world_from_rig: Some(world_from_node * self.rig.node_from_left),
+            world_from_rig: Some(
+                opencv_from_hl2ss_world() * world_from_node * self.rig.node_from_left,
+            ),
             left: left.pixels,
             right: right.pixels,
         })
     }
+}
+
+/// hl2ss's world is right-handed with y up and z toward the viewer: WebXR's axes. Sessions of
+/// the bridge say `"webxr"`, so the server (which works in OpenCV's axes, y down) is handed the
+/// world turned by this half turn about x, and every viewer, in whatever convention it asks
+/// for, sees the room the right way up.
+pub fn opencv_from_hl2ss_world() -> Isometry3<f64> {
+    // Exactly diag(1, -1, -1): a unit quaternion with w = 0, x = 1.
+    Isometry3::from_parts(
+        nalgebra::Translation3::identity(),
+        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(0.0, 1.0, 0.0, 0.0)),
+    )
 }
 
 impl FrameSource for Hl2ssSource {

@@ -9,7 +9,8 @@
 //! A fixed pool of cylinders is created once; each update moves, colours and shows as many as
 //! there are vectors and hides the rest, in one display list, at most `rate_hz` times a second.
 //! Unity's world is left-handed: hl2ss's (right-handed, y up, z toward the wearer) point
-//! (x, y, z) is Unity's (x, y, -z).
+//! (x, y, z) is Unity's (x, y, -z). The vectors are asked of the server in its `"unity"`
+//! convention, which is exactly that.
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
@@ -58,23 +59,15 @@ pub fn world_transform(
 }
 
 /// An arrow of a vector as a Unity cylinder: centre, rotation taking +y along the vector, and
-/// scale (`width` across, `length` long). Input in hl2ss's world (right-handed).
+/// scale (`width` across, `length` long). Input and output in Unity's frame.
 pub fn arrow_transform(
     position_m: [f32; 3],
     velocity_m_per_s: [f32; 3],
     seconds: f64,
     width_m: f64,
 ) -> ([f32; 3], [f32; 4], [f32; 3]) {
-    let p = Vector3::new(
-        f64::from(position_m[0]),
-        f64::from(position_m[1]),
-        -f64::from(position_m[2]),
-    );
-    let v = Vector3::new(
-        f64::from(velocity_m_per_s[0]),
-        f64::from(velocity_m_per_s[1]),
-        -f64::from(velocity_m_per_s[2]),
-    );
+    let p = Vector3::from(position_m.map(f64::from));
+    let v = Vector3::from(velocity_m_per_s.map(f64::from));
     let length = (v.norm() * seconds).max(1e-4);
     let centre = p + v * (seconds / 2.0);
     let rotation = UnitQuaternion::rotation_between(&Vector3::y(), &v).unwrap_or_else(|| {
@@ -316,7 +309,7 @@ pub async fn follow_and_paint(
                     };
                     if let Some(s) = sessions.iter().find(|s| s.session.client == client) {
                         let subscribe = serde_json::json!({
-                            "type": "subscribe", "session": s.session.id, "convention": "opencv"
+                            "type": "subscribe", "session": s.session.id, "convention": "unity"
                         });
                         ws.send(Message::text(subscribe.to_string()))
                             .await
@@ -356,8 +349,8 @@ mod tests {
 
     #[test]
     fn an_arrow_points_along_its_vector_in_unitys_frame() {
-        // Moving toward the wearer's right and away from them (-z in hl2ss, +z in Unity).
-        let (centre, q, scale) = arrow_transform([0.0, 1.0, -2.0], [0.3, 0.0, -0.4], 0.2, 0.01);
+        // Moving toward the wearer's right and away from them (+z in Unity).
+        let (centre, q, scale) = arrow_transform([0.0, 1.0, 2.0], [0.3, 0.0, 0.4], 0.2, 0.01);
         let expected = [0.03, 1.0, 2.04];
         assert!(
             centre

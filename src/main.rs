@@ -805,6 +805,8 @@ fn run(cli: Cli) -> Result<()> {
             let counters = source.counters();
             let options = ReplayOptions {
                 client_name: format!("mrptv hl2ss bridge ({})", endpoints.host),
+                // hl2ss's world has WebXR's axes (see `opencv_from_hl2ss_world`).
+                convention: Convention::WebXr,
                 rate: Rate::Max,
                 max_in_flight: 2,
                 keep_batches: out.is_some(),

@@ -240,9 +240,11 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
         .collect();
     for (got, original) in recorded.frames.iter().zip(&originals) {
         assert!((got.t_s - (original.t_s - rec.frames[0].t_s)).abs() < 1e-6);
+        // The fake's world is hl2ss's (y up); the server works in OpenCV's axes (y down).
         let d = max_abs(
             &got.world_from_rig.expect("posed"),
-            &original.world_from_rig.expect("posed"),
+            &(mrptv::hl2ss_bridge::opencv_from_hl2ss_world()
+                * original.world_from_rig.expect("posed")),
         );
         assert!(d < 1e-5, "frame {}: pose off by {d}", got.index);
         assert_eq!(
@@ -298,8 +300,8 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     let (lo, hi) = offline_rows.iter().fold(
         ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
         |(mut lo, mut hi), r| {
-            // In Unity's frame: z flipped.
-            let p = [r.position.x, r.position.y, -r.position.z];
+            // OpenCV's axes (offline) to Unity's: y flipped.
+            let p = [r.position.x, -r.position.y, r.position.z];
             for k in 0..3 {
                 lo[k] = lo[k].min(p[k]);
                 hi[k] = hi[k].max(p[k]);
@@ -366,7 +368,8 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     assert_eq!(removed, arrows, "the pool is removed at the end");
 }
 
-/// Two `tracks.csv` files with the same rows, values equal to float32 rounding.
+/// Two `tracks.csv` files with the same rows, values equal to float32 rounding; the live one in
+/// the bridge's WebXR axes (hl2ss's world), the offline one in OpenCV's.
 fn assert_same_rows(live: &Path, offline: &Path) {
     let live = mrptv::tables::read_tracks(live).expect("live.csv");
     let offline = mrptv::tables::read_tracks(offline).expect("offline.csv");
@@ -374,17 +377,17 @@ fn assert_same_rows(live: &Path, offline: &Path) {
     assert!(!live.is_empty());
     for (a, b) in live.iter().zip(&offline) {
         assert_eq!((a.frame, a.track_id), (b.frame, b.track_id));
-        let values = |r: &mrptv::tables::TrackRow| {
+        let values = |r: &mrptv::tables::TrackRow, s: f64| {
             [
                 r.position.x,
-                r.position.y,
-                r.position.z,
+                s * r.position.y,
+                s * r.position.z,
                 r.velocity.x,
-                r.velocity.y,
-                r.velocity.z,
+                s * r.velocity.y,
+                s * r.velocity.z,
             ]
         };
-        for (x, y) in values(a).iter().zip(values(b)) {
+        for (x, y) in values(a, -1.0).iter().zip(values(b, 1.0)) {
             assert!(
                 (x - y).abs() <= 1e-6 * y.abs().max(1e-3),
                 "frame {} track {}: live {x} offline {y}",
