@@ -14,8 +14,10 @@
 //!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity
 //!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
 //! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
-//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, and a
-//!   `rig.json` lens model fitted to its unprojection tables (groundwork of `mrptv hl2ss`).
+//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
+//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. `hl2ss_bridge`
+//!   (`mrptv hl2ss`) turns its streams into a headset session; `hl2ss_holograms` draws the
+//!   vectors back through its Unity plugin's message queue.
 //! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
 //! - [`eval`]: scores velocities against truth.
 //! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
