@@ -440,7 +440,12 @@ pub fn fit_lens(
                 f64::from(uv2x[v * width as usize + u]),
                 f64::from(uv2y[v * width as usize + u]),
             );
-            if x.is_finite() && y.is_finite() {
+            // hl2ss leaves a pixel that failed to map with its neighbour's value: no real
+            // pixel sees exactly the ray of the one beside it.
+            let repeated = u > 0
+                && uv2x[v * width as usize + u - 1] == uv2x[v * width as usize + u]
+                && uv2y[v * width as usize + u - 1] == uv2y[v * width as usize + u];
+            if x.is_finite() && y.is_finite() && !repeated {
                 samples.push((x, y, u as f64, v as f64));
             }
         }
@@ -601,6 +606,10 @@ impl Pairer {
             unpaired_left: 0,
             unpaired_right: 0,
         }
+    }
+
+    pub fn tolerance_ticks(&self) -> u64 {
+        self.tolerance_ticks
     }
 
     pub fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {

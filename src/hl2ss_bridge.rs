@@ -36,7 +36,13 @@ pub enum BridgeError {
     },
     #[error("{0}")]
     Rig(crate::hl2ss::Hl2ssError),
+    /// The camera's stream closed (the app stopped) or went silent.
+    #[error("{camera} camera's stream ended: {why}")]
+    Ended { camera: &'static str, why: String },
 }
+
+/// A camera that sends nothing for this long is taken as gone (hl2ss streams at 30 Hz).
+const STREAM_SILENCE: Duration = Duration::from_secs(10);
 
 /// Where the two cameras stream from.
 #[derive(Debug, Clone)]
@@ -140,11 +146,15 @@ pub struct BridgeCounters {
     /// Pairs dropped because hl2ss had no pose for them (tracking lost): their vectors would be
     /// in no frame at all.
     pub unposed: u64,
+    /// Pairs dropped unsent because more than 4 were waiting (the server was behind: a live
+    /// source does not queue up old frames), or because their time did not move forward.
+    pub stale: u64,
 }
 
+#[derive(Clone, Copy)]
 enum Side {
-    Left,
-    Right,
+    Left = 0,
+    Right = 1,
 }
 
 /// Reads one camera's raw frames with poses until the stream ends.
@@ -155,10 +165,21 @@ fn read_stream(
     frames: std_mpsc::SyncSender<Result<(Side, VlcFrame), BridgeError>>,
 ) {
     let format = |error| BridgeError::Format { camera, error };
+    let ended = |error: std::io::Error| BridgeError::Ended {
+        camera,
+        why: match error.kind() {
+            std::io::ErrorKind::UnexpectedEof => "closed by the HoloLens".to_string(),
+            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => {
+                format!("nothing received for {} s", STREAM_SILENCE.as_secs())
+            }
+            _ => error.to_string(),
+        },
+    };
     loop {
         let mut head = [0u8; HEADER_BYTES];
-        if stream.read_exact(&mut head).is_err() {
-            return; // the stream ended
+        if let Err(e) = stream.read_exact(&mut head) {
+            let _ = frames.send(Err(ended(e)));
+            return;
         }
         let (timestamp, size) = decode_header(&head);
         let frame = if size > 4 * crate::hl2ss::VLC_PIXELS {
@@ -168,7 +189,7 @@ fn read_stream(
         } else {
             let mut payload = vec![0u8; size + POSE_BYTES];
             match stream.read_exact(&mut payload) {
-                Err(_) => return,
+                Err(e) => Err(ended(e)),
                 Ok(()) => VlcFrame::decode(timestamp, &payload[..size], Some(&payload[size..]))
                     .map(side)
                     .map_err(format),
@@ -181,6 +202,66 @@ fn read_stream(
     }
 }
 
+impl Hl2ssSource {
+    fn sync_unpaired(&self) {
+        let (l, r) = (self.pairer.unpaired_left, self.pairer.unpaired_right);
+        self.count(|c| {
+            c.unpaired_left = l;
+            c.unpaired_right = r;
+        });
+    }
+
+    /// Both streams are over, or one is and the other has nothing left that could pair.
+    fn end(&mut self) {
+        self.finished = true;
+        self.pairer.flush();
+        self.sync_unpaired();
+    }
+
+    /// One message of a reader thread: a frame is paired if it can be.
+    fn take(&mut self, received: Result<(Side, VlcFrame), BridgeError>) -> Result<(), ClientError> {
+        let (side, frame) = match received {
+            Ok(f) => f,
+            Err(BridgeError::Ended { camera, why }) => {
+                tracing::warn!("{camera} camera's stream ended: {why}");
+                self.ended[usize::from(camera == "right")] = true;
+                if self.ended == [true, true] {
+                    self.end();
+                }
+                return Ok(());
+            }
+            Err(e) => return Err(ClientError::Protocol(e.to_string())),
+        };
+        let other = 1 - side as usize;
+        // One camera alone makes no stereo pair.
+        if self.ended[other]
+            && frame.timestamp
+                > self.last_timestamp[other].saturating_add(self.pairer.tolerance_ticks())
+        {
+            self.end();
+            return Ok(());
+        }
+        self.last_timestamp[side as usize] = frame.timestamp;
+        let pair = match side {
+            Side::Left => {
+                self.count(|c| c.left_frames += 1);
+                self.pairer.push_left(frame)
+            }
+            Side::Right => {
+                self.count(|c| c.right_frames += 1);
+                self.pairer.push_right(frame)
+            }
+        };
+        self.pairer.trim();
+        self.sync_unpaired();
+        if let Some(pair) = pair {
+            self.count(|c| c.pairs += 1);
+            self.ready.push_back(pair);
+        }
+        Ok(())
+    }
+}
+
 /// Paired frames of a live hl2ss, as a headset source.
 pub struct Hl2ssSource {
     rig: BridgeRig,
@@ -190,7 +271,17 @@ pub struct Hl2ssSource {
     last_t_s: f64,
     next_index: u64,
     counters: Arc<Mutex<BridgeCounters>>,
+    /// Per side (left, right): its stream has ended; its newest timestamp.
+    ended: [bool; 2],
+    last_timestamp: [u64; 2],
+    finished: bool,
+    /// Pairs made and not yet sent.
+    ready: std::collections::VecDeque<(VlcFrame, VlcFrame)>,
 }
+
+/// Pairs waiting to be sent, at most: 4 frame intervals (133 ms at 30 Hz). A live source keeps
+/// up with the room rather than queueing seconds of old frames when the server falls behind.
+const MAX_BACKLOG_PAIRS: usize = 4;
 
 impl Hl2ssSource {
     /// Opens both streams (raw, with poses).
@@ -209,6 +300,7 @@ impl Hl2ssSource {
             ("right", endpoints.right_port, |f| (Side::Right, f)),
         ] {
             let mut stream = endpoints.connect(camera, port)?;
+            let _ = stream.set_read_timeout(Some(STREAM_SILENCE));
             stream
                 .write_all(&StreamConfig::raw_with_poses().encode())
                 .map_err(|error| BridgeError::Io {
@@ -234,6 +326,10 @@ impl Hl2ssSource {
             last_t_s: f64::NEG_INFINITY,
             next_index: 0,
             counters: Default::default(),
+            ended: [false; 2],
+            last_timestamp: [0; 2],
+            finished: false,
+            ready: Default::default(),
         })
     }
 
@@ -258,6 +354,7 @@ impl Hl2ssSource {
         let first = *self.first_timestamp.get_or_insert(left.timestamp);
         let t_s = left.timestamp.saturating_sub(first) as f64 / TICKS_PER_SECOND;
         if t_s <= self.last_t_s {
+            self.count(|c| c.stale += 1);
             return None;
         }
         self.last_t_s = t_s;
@@ -294,42 +391,34 @@ impl FrameSource for Hl2ssSource {
 
     fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>> {
         loop {
-            let Ok(received) = self.frames.recv() else {
-                // Both streams ended.
-                self.pairer.flush();
-                let (l, r) = (self.pairer.unpaired_left, self.pairer.unpaired_right);
-                self.count(|c| {
-                    c.unpaired_left = l;
-                    c.unpaired_right = r;
-                });
-                return None;
-            };
-            let (side, frame) = match received {
-                Ok(f) => f,
-                Err(e) => return Some(Err(ClientError::Protocol(e.to_string()))),
-            };
-            let pair = match side {
-                Side::Left => {
-                    self.count(|c| c.left_frames += 1);
-                    self.pairer.push_left(frame)
+            // Everything that has arrived is paired; only when nothing is ready does it wait.
+            while !self.finished {
+                let received = if self.ready.is_empty() {
+                    match self.frames.recv() {
+                        Ok(r) => r,
+                        Err(_) => {
+                            self.end();
+                            break;
+                        }
+                    }
+                } else {
+                    match self.frames.try_recv() {
+                        Ok(r) => r,
+                        Err(_) => break,
+                    }
+                };
+                if let Err(e) = self.take(received) {
+                    return Some(Err(e));
                 }
-                Side::Right => {
-                    self.count(|c| c.right_frames += 1);
-                    self.pairer.push_right(frame)
-                }
-            };
-            self.pairer.trim();
-            let (unpaired_left, unpaired_right) =
-                (self.pairer.unpaired_left, self.pairer.unpaired_right);
-            self.count(|c| {
-                c.unpaired_left = unpaired_left;
-                c.unpaired_right = unpaired_right;
-            });
-            if let Some((left, right)) = pair {
-                self.count(|c| c.pairs += 1);
-                if let Some(frame) = self.convert(left, right) {
-                    return Some(Ok(frame));
-                }
+            }
+            // Behind by more than the backlog: the oldest pairs are skipped, not queued.
+            while self.ready.len() > MAX_BACKLOG_PAIRS {
+                self.ready.pop_front();
+                self.count(|c| c.stale += 1);
+            }
+            let (left, right) = self.ready.pop_front()?;
+            if let Some(frame) = self.convert(left, right) {
+                return Some(Ok(frame));
             }
         }
     }

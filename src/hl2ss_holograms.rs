@@ -120,6 +120,7 @@ impl Painter {
         })?;
         let _ = stream.set_nodelay(true);
         let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
+        let _ = stream.set_write_timeout(Some(Duration::from_secs(10)));
         let mut painter = Self {
             stream,
             addr,
@@ -139,7 +140,7 @@ impl Painter {
         list.push(message(END_DISPLAY_LIST, &[]));
         let answers = painter.send(&list)?;
         painter.keys = answers[1..=arrows].to_vec();
-        // Created visible at the origin: hide them all.
+        // Hidden until there is something to show (whatever the plugin's default).
         let mut hide = vec![message(BEGIN_DISPLAY_LIST, &[])];
         for &key in &painter.keys {
             hide.push(message(
@@ -226,14 +227,17 @@ impl Painter {
         }
         list.push(message(END_DISPLAY_LIST, &[]));
         let answers = self.send(&list)?;
-        let refused = answers.iter().filter(|&&a| a == 0).count();
+        // The list's own begin and end are always accepted; what matters is the rest.
+        let commands = &answers[1..answers.len() - 1];
+        let refused = commands.iter().filter(|&&a| a == 0).count();
         self.refused += refused as u64;
         self.updates += 1;
         self.shown = n;
-        if refused > 0 && refused == answers.len() {
+        if refused > 0 && refused == commands.len() {
+            // The pool is gone (the Unity scene was reloaded): nothing drawn will show.
             return Err(HologramError::Refused {
                 refused,
-                sent: answers.len(),
+                sent: commands.len(),
             });
         }
         Ok(true)
@@ -277,10 +281,17 @@ pub async fn follow_and_paint(
         request.headers_mut().insert("authorization", value);
     }
     let connector = tls.map(tokio_tungstenite::Connector::Rustls);
-    let (mut ws, _) =
-        tokio_tungstenite::connect_async_tls_with_config(request, None, true, connector)
-            .await
-            .map_err(|e| format!("watching {watch_url}: {e}"))?;
+    let (mut ws, _) = match tokio_tungstenite::connect_async_tls_with_config(
+        request, None, true, connector,
+    )
+    .await
+    {
+        Ok(connected) => connected,
+        Err(e) => {
+            let _ = painter.remove_all();
+            return Err(format!("watching {watch_url}: {e}"));
+        }
+    };
     let (batches, to_paint) = std::sync::mpsc::sync_channel::<DecodedBatch>(1);
     let painting = std::thread::spawn(move || {
         let mut error = None;
@@ -294,6 +305,7 @@ pub async fn follow_and_paint(
         (painter, error)
     });
     let mut subscribed = false;
+    let mut failure = None;
     tokio::pin!(stop);
     loop {
         tokio::select! {
@@ -311,9 +323,10 @@ pub async fn follow_and_paint(
                         let subscribe = serde_json::json!({
                             "type": "subscribe", "session": s.session.id, "convention": "unity"
                         });
-                        ws.send(Message::text(subscribe.to_string()))
-                            .await
-                            .map_err(|e| e.to_string())?;
+                        if let Err(e) = ws.send(Message::text(subscribe.to_string())).await {
+                            failure = Some(e.to_string());
+                            break;
+                        }
                         subscribed = true;
                     }
                 }
@@ -327,17 +340,23 @@ pub async fn follow_and_paint(
                     }
                 }
                 Some(Ok(_)) => {}
-                Some(Err(e)) => return Err(e.to_string()),
+                Some(Err(e)) => {
+                    failure = Some(e.to_string());
+                    break;
+                }
                 None => break,
             },
             _ = &mut stop => break,
         }
     }
+    // The painter removes its arrows whatever ended the watch; its thread is waited for on a
+    // blocking thread, not on the runtime's.
     drop(batches);
-    let (painter, error) = painting
-        .join()
+    let (painter, error) = tokio::task::spawn_blocking(move || painting.join())
+        .await
+        .map_err(|e| e.to_string())?
         .map_err(|_| "the hologram painter panicked".to_string())?;
-    match error {
+    match failure.or(error) {
         Some(e) => Err(e),
         None => Ok(painter),
     }

@@ -769,8 +769,11 @@ fn run(cli: Cli) -> Result<()> {
             if !(hologram_rate.is_finite() && hologram_rate > 0.0 && hologram_rate <= 60.0) {
                 bail!("--hologram-rate must be between 0 and 60 updates a second");
             }
-            if !(pair_tolerance_ms.is_finite() && pair_tolerance_ms > 0.0) {
-                bail!("--pair-tolerance-ms must be positive, not {pair_tolerance_ms}");
+            if !(pair_tolerance_ms.is_finite()
+                && pair_tolerance_ms > 0.0
+                && pair_tolerance_ms <= 1000.0)
+            {
+                bail!("--pair-tolerance-ms must be between 0 and 1000, not {pair_tolerance_ms}");
             }
             init_logging("warn");
             let endpoints = mrptv::hl2ss_bridge::Hl2ssEndpoints {
@@ -797,11 +800,19 @@ fn run(cli: Cli) -> Result<()> {
                     fit.pixels_used, fit.rms_px, fit.max_px
                 );
             }
-            let source = mrptv::hl2ss_bridge::Hl2ssSource::open(
+            let source = match mrptv::hl2ss_bridge::Hl2ssSource::open(
                 &endpoints,
                 rig,
                 std::time::Duration::from_secs_f64(pair_tolerance_ms / 1e3),
-            )?;
+            ) {
+                Ok(source) => source,
+                Err(e) => {
+                    if let Some(mut painter) = painter {
+                        let _ = painter.remove_all();
+                    }
+                    return Err(e.into());
+                }
+            };
             let counters = source.counters();
             let options = ReplayOptions {
                 client_name: format!("mrptv hl2ss bridge ({})", endpoints.host),

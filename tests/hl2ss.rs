@@ -186,6 +186,7 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
         "--hologram-rate".into(),
         "10".into(),
     ];
+    let started = std::time::Instant::now();
     let out = tokio::task::spawn_blocking(move || {
         std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
             .args(&args)
@@ -195,6 +196,7 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     })
     .await
     .expect("bridge task");
+    let bridge_seconds = started.elapsed().as_secs_f64();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     // The fit residual is reported for each camera.
@@ -223,6 +225,7 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     );
     assert_eq!(bridge["unpaired_right"], 0, "{summary}");
     assert_eq!(bridge["unposed"], 0, "{summary}");
+    assert_eq!(bridge["stale"], 0, "the server kept up: {summary}");
     assert_eq!(summary["frames_processed"], frames as u64 - 1, "{summary}");
     assert_eq!(summary["errors"], 0, "{summary}");
     assert!(summary["refined_vectors"].as_u64() > Some(100), "{summary}");
@@ -256,10 +259,9 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     }
     let (fitted, truth) = (&recorded.rig, &rec.rig);
     for (a, b) in [(fitted.left, truth.left), (fitted.right, truth.right)] {
-        assert!(
-            (a.fx - b.fx).abs() < 0.05 && (a.cy - b.cy).abs() < 0.05,
-            "{a:?} vs {b:?}"
-        );
+        for (x, y) in [(a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)] {
+            assert!((x - y).abs() < 0.05, "{a:?} vs {b:?}");
+        }
     }
     assert!(max_abs(&fitted.right_from_left, &truth.right_from_left) < 1e-5);
 
@@ -358,8 +360,11 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     assert!(!open);
     // The pool's creation and hiding, then one list per update.
     assert_eq!(lists as u64, 2 + updates);
-    // 40 frames at 30 Hz is 1.3 s: at 10 updates a second, a handful, never one per frame.
-    assert!((3..=20).contains(&updates), "{updates} updates");
+    // 40 frames at 30 Hz is 1.3 s: at most 10 updates a second, never one per frame.
+    assert!(
+        updates >= 3 && updates as f64 <= bridge_seconds * 10.0 + 1.0,
+        "{updates} updates in {bridge_seconds:.2} s"
+    );
     assert!(transforms > 0);
     let removed = commands
         .iter()
