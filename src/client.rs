@@ -330,6 +330,26 @@ fn spawn_source(mut source: impl FrameSource) -> mpsc::Receiver<Result<SourceFra
     rx
 }
 
+/// A WebSocket upgrade request to `url`, with `Authorization: Bearer SECRET` when given (the
+/// server's ingest or watch secret).
+pub fn authorized_request(
+    url: &str,
+    secret: Option<&str>,
+) -> Result<tokio_tungstenite::tungstenite::handshake::client::Request, ClientError> {
+    let mut request = url
+        .into_client_request()
+        .map_err(|error| ClientError::Connect {
+            url: url.to_string(),
+            error,
+        })?;
+    if let Some(secret) = secret {
+        let value = HeaderValue::from_str(&format!("Bearer {secret}"))
+            .map_err(|_| ClientError::Protocol("the secret must be printable ASCII".into()))?;
+        request.headers_mut().insert(AUTHORIZATION, value);
+    }
+    Ok(request)
+}
+
 /// The protocol error an HTTP refusal of the upgrade carries (a wrong secret: 401).
 fn refusal(error: &tokio_tungstenite::tungstenite::Error) -> Option<ClientError> {
     let tokio_tungstenite::tungstenite::Error::Http(response) = error else {
@@ -356,19 +376,7 @@ pub async fn replay(
         .tls
         .clone()
         .map(tokio_tungstenite::Connector::Rustls);
-    let mut request = options
-        .url
-        .as_str()
-        .into_client_request()
-        .map_err(|error| ClientError::Connect {
-            url: options.url.clone(),
-            error,
-        })?;
-    if let Some(secret) = &options.secret {
-        let value = HeaderValue::from_str(&format!("Bearer {secret}"))
-            .map_err(|_| ClientError::Protocol("the secret must be printable ASCII".into()))?;
-        request.headers_mut().insert(AUTHORIZATION, value);
-    }
+    let request = authorized_request(&options.url, options.secret.as_deref())?;
     let (socket, _) =
         tokio_tungstenite::connect_async_tls_with_config(request, None, true, connector)
             .await

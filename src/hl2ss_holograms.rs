@@ -267,19 +267,15 @@ pub async fn follow_and_paint(
     stop: impl std::future::Future<Output = ()>,
 ) -> Result<Painter, String> {
     use futures_util::{SinkExt, StreamExt};
-    use tokio_tungstenite::tungstenite::client::IntoClientRequest;
     use tokio_tungstenite::tungstenite::Message;
 
-    let mut request = watch_url
-        .as_str()
-        .into_client_request()
-        .map_err(|e| e.to_string())?;
-    if let Some(secret) = &secret {
-        let value = format!("Bearer {secret}")
-            .parse()
-            .map_err(|_| "the watch secret must be printable ASCII".to_string())?;
-        request.headers_mut().insert("authorization", value);
-    }
+    let request = match crate::client::authorized_request(&watch_url, secret.as_deref()) {
+        Ok(request) => request,
+        Err(e) => {
+            let _ = painter.remove_all();
+            return Err(e.to_string());
+        }
+    };
     let connector = tls.map(tokio_tungstenite::Connector::Rustls);
     let (mut ws, _) = match tokio_tungstenite::connect_async_tls_with_config(
         request, None, true, connector,
