@@ -15,8 +15,8 @@
 //!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
 //! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
 //! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
-//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. `hl2ss_bridge`
-//!   (`mrptv hl2ss`) turns its streams into a headset session; `hl2ss_holograms` draws the
+//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
+//!   (`mrptv hl2ss`) turns its streams into a headset session; [`hl2ss::holograms`] draws the
 //!   vectors back through its Unity plugin's message queue.
 //! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
 //! - [`eval`]: scores velocities against truth.
@@ -47,10 +47,6 @@ pub mod eval;
 pub mod fuzzing;
 pub mod geometry;
 pub mod hl2ss;
-#[cfg(feature = "service")]
-pub mod hl2ss_bridge;
-#[cfg(feature = "service")]
-pub mod hl2ss_holograms;
 #[cfg(feature = "service")]
 pub mod load;
 #[cfg(feature = "service")]

@@ -397,3 +397,52 @@ fn serving_beyond_loopback_without_secrets_or_tls_says_what_is_exposed() {
     ]);
     assert!(e.contains("the same"), "{e}");
 }
+
+/// Every command's `--help` and `-h` (and `--version`) are as recorded in `tests/cli_help/`:
+/// scripts and the docs quote them, so they change only on purpose (`MRPTV_UPDATE_GOLDEN=1`
+/// rewrites the files; review the diff).
+#[test]
+fn help_texts_are_as_recorded() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/cli_help");
+    let update = std::env::var_os("MRPTV_UPDATE_GOLDEN").is_some();
+    let commands = [
+        "synth", "process", "eval", "demo", "serve", "replay", "hl2ss", "load", "config",
+    ];
+    let mut cases: Vec<(String, Vec<&str>)> = vec![
+        ("mrptv".into(), vec!["--help"]),
+        ("mrptv-h".into(), vec!["-h"]),
+        ("version".into(), vec!["--version"]),
+    ];
+    for command in commands {
+        cases.push((command.into(), vec![command, "--help"]));
+        cases.push((format!("{command}-h"), vec![command, "-h"]));
+    }
+    let mut differ = Vec::new();
+    for (name, args) in &cases {
+        let out = mrptv(args);
+        assert!(out.status.success(), "mrptv {args:?} failed");
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        let path = dir.join(format!("{name}.txt"));
+        if update {
+            fs::write(&path, &text).expect("write golden help");
+            continue;
+        }
+        let recorded = fs::read_to_string(&path).unwrap_or_else(|e| {
+            panic!("{}: {e} (MRPTV_UPDATE_GOLDEN=1 writes it)", path.display())
+        });
+        if text != recorded {
+            differ.push(format!(
+                "mrptv {}: differs from {}:\n{text}",
+                args.join(" "),
+                path.display()
+            ));
+        }
+    }
+    let recorded_files = fs::read_dir(&dir).expect("tests/cli_help").count();
+    assert_eq!(
+        recorded_files,
+        cases.len(),
+        "tests/cli_help/ holds files no case checks, or misses some"
+    );
+    assert!(differ.is_empty(), "{}", differ.join("\n\n"));
+}

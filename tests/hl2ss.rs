@@ -10,10 +10,10 @@ use std::io::{Read, Write};
 use std::net::TcpListener;
 use std::path::Path;
 
+use mrptv::hl2ss::holograms as hologram;
 use mrptv::hl2ss::{
     row_vector_from_isometry, StreamConfig, StreamMode, VlcCalibration, VlcFrame, VLC_PIXELS,
 };
-use mrptv::hl2ss_holograms as hologram;
 use mrptv::recording::Recording;
 use mrptv::server::ServerOptions;
 use mrptv::synth::Scenario;
@@ -246,7 +246,7 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
         // The fake's world is hl2ss's (y up); the server works in OpenCV's axes (y down).
         let d = max_abs(
             &got.world_from_rig.expect("posed"),
-            &(mrptv::hl2ss_bridge::opencv_from_hl2ss_world()
+            &(mrptv::hl2ss::bridge::opencv_from_hl2ss_world()
                 * original.world_from_rig.expect("posed")),
         );
         assert!(d < 1e-5, "frame {}: pose off by {d}", got.index);

@@ -1,7 +1,7 @@
 //! Golden protocol messages: `protocol/golden/` holds one file per message below. Every file is
 //! decoded with the library's own decoders and must equal, byte for byte, what the library
 //! encodes for the same message, so the spec's examples and the code cannot drift apart.
-//! `MRPTV_UPDATE_GOLDEN=1 cargo test --test protocol_golden` rewrites them after a deliberate change.
+//! `MRPTV_UPDATE_GOLDEN=1 cargo test --release --test protocol_golden` rewrites them after a deliberate change.
 
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -16,6 +16,15 @@
 //!   virtual undistorted pinhole). `uv2xy[v][u]` is the point on the camera's z = 1 plane seen at
 //!   the *centre* of pixel (u, v) (Research Mode maps `(u + 0.5, v + 0.5)` with the pixel's corner
 //!   at 0; in OpenCV's convention, which `rig.json` uses, that centre is `(u, v)`).
+//!
+//! Submodules with I/O (the `service` feature): [`bridge`] turns the streams into a headset
+//! session (`mrptv hl2ss`); [`holograms`] draws the vectors back through the Unity plugin's
+//! message queue (`mrptv hl2ss --holograms`).
+
+#[cfg(feature = "service")]
+pub mod bridge;
+#[cfg(feature = "service")]
+pub mod holograms;
 
 use nalgebra::{Isometry3, Matrix4, SMatrix, SVector};
 

@@ -1,0 +1,209 @@
+//! Flags that more than one command takes, declared once: the secrets a client presents, and
+//! `serve`'s access control, limits and TLS.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+
+use mrptv::server::{self, ServerOptions};
+use mrptv::tls::{CertificateOrigin, CertificateSource, ServerTls};
+
+/// The ingest secret a headset client (`replay`, `hl2ss`) presents.
+#[derive(clap::Args)]
+pub struct IngestSecret {
+    /// The server's ingest secret (see `serve --ingest-secret`).
+    #[arg(
+        long,
+        env = "MRPTV_INGEST_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    pub secret: Option<String>,
+}
+
+/// Access control and limits of `serve` (defaults: `ServerOptions::default()`).
+#[derive(clap::Args)]
+#[command(next_help_heading = "Access and limits")]
+pub struct GuardArgs {
+    /// Secret headsets must present (Authorization: Bearer, or ?token=). Prefer the environment
+    /// variable: command lines are visible to other users of this machine.
+    #[arg(
+        long,
+        env = "MRPTV_INGEST_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    pub ingest_secret: Option<String>,
+    /// Secret viewers (the observer page: ?token=SECRET) and /v1/sessions must present.
+    #[arg(
+        long,
+        env = "MRPTV_WATCH_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    pub watch_secret: Option<String>,
+    /// Connections open at once; more are closed on accept.
+    #[arg(long, default_value_t = ServerOptions::default().max_connections, value_name = "N")]
+    max_connections: usize,
+    /// Live sessions at once.
+    #[arg(long, default_value_t = ServerOptions::default().max_sessions, value_name = "N")]
+    max_sessions: usize,
+    /// Viewers per session.
+    #[arg(long, default_value_t = ServerOptions::default().max_viewers_per_session, value_name = "N")]
+    max_viewers: usize,
+    /// Largest image width or height, pixels.
+    #[arg(long, default_value_t = ServerOptions::default().max_image_side, value_name = "PIXELS")]
+    max_image_size: u32,
+    /// Frames per second a session takes (bursts of one second's worth pass); 0: no limit.
+    #[arg(long, default_value_t = ServerOptions::default().max_frame_rate_hz, value_name = "HZ")]
+    max_frame_rate: f64,
+    /// Largest WebSocket message, MiB (a raw8 stereo frame of 640x480 is 0.6 MiB).
+    #[arg(long, default_value_t = ServerOptions::default().max_message_bytes >> 20, value_name = "MIB")]
+    max_message_mib: usize,
+    /// Seconds a client has for its TLS handshake, its HTTP request, and a headset its hello.
+    #[arg(long, default_value_t = ServerOptions::default().handshake_timeout.as_secs_f64(), value_name = "S")]
+    handshake_timeout: f64,
+    /// Seconds of silence (not even a pong to the server's pings) before a connection is closed.
+    #[arg(long, default_value_t = ServerOptions::default().idle_timeout.as_secs_f64(), value_name = "S")]
+    idle_timeout: f64,
+}
+
+impl GuardArgs {
+    pub fn apply(self, options: &mut ServerOptions) -> Result<()> {
+        let seconds = |what: &str, s: f64| {
+            if s.is_finite() && s > 0.0 && s < 1e6 {
+                Ok(std::time::Duration::from_secs_f64(s))
+            } else {
+                bail!("--{what} must be a positive number of seconds, not {s}")
+            }
+        };
+        if !(self.max_frame_rate.is_finite() && self.max_frame_rate >= 0.0) {
+            bail!(
+                "--max-frame-rate must be 0 (no limit) or a positive rate, not {}",
+                self.max_frame_rate
+            );
+        }
+        if self.max_message_mib == 0 || self.max_message_mib > 1024 {
+            bail!(
+                "--max-message-mib must be 1 to 1024, not {}",
+                self.max_message_mib
+            );
+        }
+        options.access = server::access::AccessControl::new(
+            self.ingest_secret.as_deref(),
+            self.watch_secret.as_deref(),
+        )?;
+        options.max_connections = self.max_connections;
+        options.max_sessions = self.max_sessions;
+        options.max_viewers_per_session = self.max_viewers;
+        options.max_image_side = self.max_image_size;
+        options.max_frame_rate_hz = self.max_frame_rate;
+        options.max_message_bytes = self.max_message_mib << 20;
+        options.handshake_timeout = seconds("handshake-timeout", self.handshake_timeout)?;
+        options.idle_timeout = seconds("idle-timeout", self.idle_timeout)?;
+        Ok(())
+    }
+}
+
+/// `serve`'s HTTPS/WSS flags.
+#[derive(clap::Args)]
+pub struct TlsArgs {
+    /// Serve HTTPS and WSS only (browsers give WebXR to secure pages only). Without
+    /// --tls-cert: a self-signed certificate, generated once and kept in --tls-dir.
+    #[arg(long)]
+    tls: bool,
+    /// PEM certificate chain to serve (implies --tls; needs --tls-key).
+    #[arg(long, value_name = "PEM", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Where the self-signed certificate is kept [default: ~/.local/share/mrptv/tls].
+    #[arg(long, value_name = "DIR")]
+    tls_dir: Option<PathBuf>,
+    /// Extra host name or IP address the self-signed certificate must cover (repeatable);
+    /// localhost, this host's name and addresses are always in it.
+    #[arg(long, value_name = "NAME")]
+    tls_name: Vec<String>,
+}
+
+impl TlsArgs {
+    /// Where the server's certificate comes from; `None`: plain HTTP.
+    pub fn source(self, bind: SocketAddr) -> Option<CertificateSource> {
+        match (self.tls_cert, self.tls_key) {
+            (Some(cert), Some(key)) => Some(CertificateSource::Files { cert, key }),
+            _ if self.tls => Some(CertificateSource::SelfSigned {
+                dir: self
+                    .tls_dir
+                    .unwrap_or_else(mrptv::tls::default_self_signed_dir),
+                names: certificate_names(bind, self.tls_name),
+            }),
+            _ => None,
+        }
+    }
+}
+
+/// Loads or makes the certificate and says which one is served, with its fingerprint.
+pub fn setup_tls(source: &CertificateSource) -> Result<ServerTls> {
+    let tls = mrptv::tls::server_tls(source)?;
+    match tls.origin {
+        CertificateOrigin::Given => {
+            println!("TLS: certificate {}", tls.cert_path.display())
+        }
+        CertificateOrigin::Generated => println!(
+            "TLS: generated a self-signed certificate {} for {}",
+            tls.cert_path.display(),
+            tls.names.join(", ")
+        ),
+        CertificateOrigin::Reused => println!(
+            "TLS: self-signed certificate {} (for {})",
+            tls.cert_path.display(),
+            tls.names.join(", ")
+        ),
+    }
+    println!("  SHA-256 fingerprint {}", tls.fingerprint);
+    if tls.origin != CertificateOrigin::Given {
+        println!(
+            "  browsers warn about a self-signed certificate: check that the fingerprint they show matches, then accept it"
+        );
+    }
+    Ok(tls)
+}
+
+/// Names a self-signed certificate covers: loopback, this host's name (and its mDNS `.local`
+/// name), the bind address or, for a wildcard bind, the address of the default route's
+/// interface, and what the user adds.
+fn certificate_names(bind: SocketAddr, extra: Vec<String>) -> Vec<String> {
+    let mut names = vec!["localhost".to_string(), "127.0.0.1".into(), "::1".into()];
+    if let Some(host) = host_name() {
+        names.push(format!("{host}.local"));
+        names.push(host);
+    }
+    if bind.ip().is_unspecified() {
+        names.extend(lan_address().map(|ip| ip.to_string()));
+    } else {
+        names.push(bind.ip().to_string());
+    }
+    names.extend(extra);
+    let mut seen = std::collections::BTreeSet::new();
+    names.retain(|n| seen.insert(n.clone()));
+    names
+}
+
+fn host_name() -> Option<String> {
+    let name = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .or_else(|| std::env::var("COMPUTERNAME").ok())?;
+    let name = name.trim();
+    (!name.is_empty() && name != "localhost").then(|| name.to_string())
+}
+
+/// The address other devices on the network most likely reach this host at: the source address
+/// of the default route (a UDP "connect" sends nothing).
+pub fn lan_address() -> Option<std::net::IpAddr> {
+    let socket = std::net::UdpSocket::bind("0.0.0.0:0").ok()?;
+    socket.connect("192.0.2.1:9").ok()?;
+    let ip = socket.local_addr().ok()?.ip();
+    (!ip.is_unspecified() && !ip.is_loopback()).then_some(ip)
+}

@@ -1,0 +1,111 @@
+//! One module per subcommand, each with its `Args` (the flags, as clap declares them) and its
+//! `run(Args)`, which turns them into the library's options and calls the library. Flags that
+//! several commands share are declared once in [`args`]; what several commands do at the edge
+//! (progress bars, output files, the async runtime, logging, signals) is here.
+
+pub mod args;
+pub mod config;
+pub mod demo;
+pub mod eval;
+pub mod hl2ss;
+pub mod load;
+pub mod process;
+pub mod replay;
+pub mod serve;
+pub mod synth;
+
+use std::fs;
+use std::io::BufWriter;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use mrptv::ptv::PipelineConfig;
+use mrptv::synth::Scenario;
+
+/// The scenario list shown below `synth --help` and `demo --help`.
+pub fn scenario_help() -> String {
+    Scenario::ALL
+        .iter()
+        .map(|s| format!("  {:<13} {}", s.name(), s.description()))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn progress_bar(len: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len as u64);
+    let style = ProgressStyle::with_template(
+        "{msg:>10} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}",
+    )
+    .unwrap_or_else(|_| ProgressStyle::default_bar())
+    .progress_chars("=> ");
+    bar.set_style(style);
+    bar.set_message(what.to_string());
+    bar
+}
+
+fn create_output(path: &Path) -> Result<BufWriter<fs::File>> {
+    Ok(BufWriter::new(fs::File::create(path).with_context(
+        || format!("cannot create {}", path.display()),
+    )?))
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
+}
+
+/// Logs to stderr; RUST_LOG overrides `default` (e.g. RUST_LOG=mrptv=trace for per-frame logs).
+fn init_logging(default: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+async fn termination() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {}
+        _ = term => {}
+    }
+}
+
+/// The published method's choices, keeping a scenario's scale parameters (M, H, contrast).
+fn method_config(base: &PipelineConfig) -> PipelineConfig {
+    let mut c = PipelineConfig::method();
+    c.velocity.half_window_frames = base.velocity.half_window_frames;
+    c.link.box_half_side_px = base.link.box_half_side_px;
+    c.detect.contrast_c = base.detect.contrast_c;
+    c
+}
+
+/// A client TLS configuration for wss:// URLs that also trusts the certificates in `ca_cert`.
+fn client_tls(ca_cert: Option<&Path>) -> Result<Option<std::sync::Arc<rustls::ClientConfig>>> {
+    Ok(match ca_cert {
+        Some(path) => Some(mrptv::tls::client_config(Some(path))?),
+        None => None,
+    })
+}

@@ -1,0 +1,237 @@
+//! `mrptv serve`: the live host service, optionally with a built-in synthetic headset.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+
+use mrptv::client::{self, ReplayOptions, SyntheticSource};
+use mrptv::protocol::Encoding;
+use mrptv::ptv::PipelineConfig;
+use mrptv::rerun_log::{start_proxy, RerunOptions, RerunSink};
+use mrptv::server::{self, ServerOptions};
+use mrptv::synth::{Scenario, ScenarioSpec};
+use mrptv::tls::ServerTls;
+
+use super::args::{lan_address, setup_tls, GuardArgs, TlsArgs};
+use super::{init_logging, method_config, runtime, termination};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1:8770")]
+    bind: SocketAddr,
+    /// Also run a built-in synthetic headset, looping, so vectors flow without hardware.
+    #[arg(long)]
+    demo: bool,
+    /// Scenario the demo headset streams.
+    #[arg(long, default_value = "flume")]
+    demo_scenario: Scenario,
+    /// Record every session's incoming frames as a recording directory under DIR.
+    #[arg(long, value_name = "DIR")]
+    record: Option<PathBuf>,
+    /// TOML config for sessions whose hello brings none [default: built-in defaults].
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Use the published method's choices as the sessions' default config.
+    #[arg(long)]
+    method: bool,
+    /// Frames a session may queue before the oldest is dropped.
+    #[arg(long, default_value_t = ServerOptions::default().queue_frames)]
+    queue_frames: usize,
+    /// Log every session to Rerun: file:DIR (one .rrd per session), connect (a viewer on
+    /// this machine) or connect:URL. Repeat for several.
+    #[arg(long, value_name = "SINK")]
+    rerun: Vec<RerunSink>,
+    /// With --rerun: log the camera images every N frames (0: never).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    rerun_images_every: u64,
+    #[command(flatten)]
+    tls: TlsArgs,
+    #[command(flatten)]
+    guard: GuardArgs,
+}
+
+/// What the banner and the demo headset need to know of the secrets.
+struct Secrets {
+    /// The demo headset presents it.
+    ingest: Option<String>,
+    watch: bool,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let tls = args.tls.source(args.bind);
+    let config = match args.config {
+        Some(path) => mrptv::config::load(&path)?,
+        None => PipelineConfig::default(),
+    };
+    let mut options = ServerOptions {
+        config: if args.method {
+            method_config(&config)
+        } else {
+            config
+        },
+        queue_frames: args.queue_frames,
+        record_dir: args.record,
+        rerun: (!args.rerun.is_empty()).then(|| RerunOptions {
+            sinks: args.rerun,
+            images_every: args.rerun_images_every,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    init_logging("info");
+    let secrets = Secrets {
+        ingest: args.guard.ingest_secret.clone(),
+        watch: args.guard.watch_secret.is_some(),
+    };
+    args.guard.apply(&mut options)?;
+    // Kept alive while the server runs: one Rerun gRPC server for every session.
+    let proxy = match options.rerun.as_mut() {
+        Some(r) => start_proxy(&mut r.sinks)?,
+        None => None,
+    };
+    if let Some(proxy) = &proxy {
+        println!(
+            "  rerun: viewers connect with `rerun --connect {}`",
+            proxy.url()
+        );
+    }
+    let tls = tls.map(|source| setup_tls(&source)).transpose()?;
+    let demo = args.demo.then_some(args.demo_scenario);
+    runtime()?.block_on(serve(args.bind, options, tls, demo, secrets))?;
+    drop(proxy);
+    Ok(())
+}
+
+async fn serve(
+    bind: SocketAddr,
+    mut options: ServerOptions,
+    tls: Option<ServerTls>,
+    demo: Option<Scenario>,
+    secrets: Secrets,
+) -> Result<()> {
+    let listener = tokio::net::TcpListener::bind(bind)
+        .await
+        .with_context(|| format!("cannot listen on {bind}"))?;
+    let addr = listener.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let scheme = if tls.is_some() {
+        Scheme::SECURE
+    } else {
+        Scheme::PLAIN
+    };
+    // The demo headset trusts the server's own certificate.
+    let demo_tls = match &tls {
+        Some(t) => Some(mrptv::tls::client_config(Some(&t.cert_path))?),
+        None => None,
+    };
+    options.tls = tls.map(|t| t.config);
+    for warning in server::access::exposure_warnings(addr, &options.access, options.tls.is_some()) {
+        eprintln!("warning: {warning}");
+    }
+    print_banner(addr, scheme, &options, secrets.watch);
+    let demo_task = demo.map(|scenario| {
+        let spec = ScenarioSpec::new(scenario);
+        println!(
+            "  demo: a synthetic headset streams '{scenario}' at {:.0} Hz, looping ({})",
+            1.0 / spec.frame_interval_s,
+            scenario.description()
+        );
+        let options = ReplayOptions {
+            client_name: format!("mrptv demo ({scenario})"),
+            config: Some(spec.config.clone()),
+            keep_batches: false,
+            tls: demo_tls,
+            secret: secrets.ingest,
+            ..ReplayOptions::new(format!("{}://{}/v1/ingest", scheme.ws, loopback_of(addr)))
+        };
+        let stop = stop_rx.clone();
+        tokio::spawn(async move {
+            let source = SyntheticSource::new(spec, 1, None, Encoding::Raw8);
+            match client::replay(source, &options, stopped(stop), |_| {}).await {
+                Ok(r) => tracing::info!(frames = r.frames_sent, "demo headset stopped"),
+                Err(e) => tracing::error!("demo headset: {e}"),
+            }
+        })
+    });
+    println!("Ctrl-C to stop.");
+    let server = tokio::spawn(server::run(listener, options, stopped(stop_rx)));
+    termination().await;
+    let _ = stop_tx.send(true);
+    let report = server.await.context("server task")??;
+    if let Some(task) = demo_task {
+        let _ = task.await;
+    }
+    if report.connections_dropped == 0 {
+        println!("stopped: every session closed");
+    } else {
+        println!(
+            "stopped: every session's frames processed and recorded; {} connection(s) not reading were dropped without their bye",
+            report.connections_dropped
+        );
+    }
+    Ok(())
+}
+
+async fn stopped(mut rx: tokio::sync::watch::Receiver<bool>) {
+    let _ = rx.wait_for(|stop| *stop).await;
+}
+
+#[derive(Clone, Copy)]
+struct Scheme {
+    http: &'static str,
+    ws: &'static str,
+}
+
+impl Scheme {
+    const PLAIN: Scheme = Scheme {
+        http: "http",
+        ws: "ws",
+    };
+    const SECURE: Scheme = Scheme {
+        http: "https",
+        ws: "wss",
+    };
+}
+
+/// Where observers, headsets and viewers connect.
+fn print_banner(addr: SocketAddr, scheme: Scheme, options: &ServerOptions, watch_secret: bool) {
+    let Scheme { http, ws } = scheme;
+    println!(
+        "mrptv {} listening on {http}://{addr}",
+        env!("CARGO_PKG_VERSION")
+    );
+    let token = if watch_secret {
+        "?token=WATCH_SECRET"
+    } else {
+        ""
+    };
+    println!("  observers: open {http}://{addr}/{token} in a browser");
+    if addr.ip().is_unspecified() {
+        if let Some(ip) = lan_address() {
+            println!(
+                "             from other devices: {http}://{}/{token}",
+                SocketAddr::new(ip, addr.port())
+            );
+        }
+    }
+    if options.access.requires(server::access::Role::Ingest) {
+        println!("  headsets present the ingest secret (Authorization: Bearer, or ?token=)");
+    }
+    println!("  headsets: {ws}://{addr}/v1/ingest");
+    println!("  viewers:  {ws}://{addr}/v1/watch");
+    println!("  sessions: {http}://{addr}/v1/sessions   health: {http}://{addr}/healthz");
+    if let Some(dir) = &options.record_dir {
+        println!("  recording every session under {}", dir.display());
+    }
+}
+
+/// Where a client on this host reaches a server bound to `addr` (a wildcard bind included).
+fn loopback_of(addr: SocketAddr) -> SocketAddr {
+    if addr.ip().is_unspecified() {
+        SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), addr.port())
+    } else {
+        addr
+    }
+}
