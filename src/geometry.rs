@@ -373,6 +373,9 @@ pub struct Rectification {
     /// Half the rectified image extent along x and y (the method's X_image, Y_image).
     pub half_width_px: f64,
     pub half_height_px: f64,
+    /// Where each image's border lands along the rectified x axis, `(min, max)` pixels.
+    left_x_range_px: (f64, f64),
+    right_x_range_px: (f64, f64),
 }
 
 impl Rectification {
@@ -414,29 +417,69 @@ impl Rectification {
             baseline_m,
             half_width_px: 0.0,
             half_height_px: 0.0,
+            left_x_range_px: (0.0, 0.0),
+            right_x_range_px: (0.0, 0.0),
+        };
+        let left = rect.rectified_border(rig, |p| rect.left_to_rect(p));
+        let right = rect.rectified_border(rig, |p| rect.right_to_rect(p));
+        let (Some(left), Some(right)) = (left, right) else {
+            return Err(invalid(
+                "K1, D1, K2, D2",
+                "the image border cannot be undistorted",
+            ));
         };
         // The method normalises by half the image size; in the virtual camera that is half the
         // extent of the left image's border once rectified.
+        rect.half_width_px = (left.max_x - left.min_x) / 2.0;
+        rect.half_height_px = (left.max_y - left.min_y) / 2.0;
+        rect.left_x_range_px = (left.min_x, left.max_x);
+        rect.right_x_range_px = (right.min_x, right.max_x);
+        let (min_disparity, max_disparity) = rect.overlap_disparity_px();
+        if max_disparity <= min_disparity.max(0.0) {
+            return Err(invalid(
+                "R, T",
+                "the two cameras' views do not overlap at any depth in front of them",
+            ));
+        }
+        Ok(rect)
+    }
+
+    /// The bounding box of one image's border once rectified; `None` when it cannot be mapped.
+    fn rectified_border(
+        &self,
+        rig: &StereoRig,
+        to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
+    ) -> Option<RectBox> {
         let (w, h) = (rig.width as f64 - 1.0, rig.height as f64 - 1.0);
-        let (mut min_x, mut max_x, mut min_y, mut max_y) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        let mut b = RectBox {
+            min_x: f64::MAX,
+            max_x: f64::MIN,
+            min_y: f64::MAX,
+            max_y: f64::MIN,
+        };
         let steps = 64;
         for i in 0..=steps {
             let s = i as f64 / steps as f64;
             for p in [(s * w, 0.0), (s * w, h), (0.0, s * h), (w, s * h)] {
-                if let Some(r) = rect.left_to_rect(PixelPoint { x: p.0, y: p.1 }) {
-                    min_x = min_x.min(r.x);
-                    max_x = max_x.max(r.x);
-                    min_y = min_y.min(r.y);
-                    max_y = max_y.max(r.y);
+                if let Some(r) = to_rect(PixelPoint { x: p.0, y: p.1 }) {
+                    b.min_x = b.min_x.min(r.x);
+                    b.max_x = b.max_x.max(r.x);
+                    b.min_y = b.min_y.min(r.y);
+                    b.max_y = b.max_y.max(r.y);
                 }
             }
         }
-        if min_x >= max_x || min_y >= max_y {
-            return Err(invalid("K1, D1", "the image border cannot be undistorted"));
-        }
-        rect.half_width_px = (max_x - min_x) / 2.0;
-        rect.half_height_px = (max_y - min_y) / 2.0;
-        Ok(rect)
+        (b.min_x < b.max_x && b.min_y < b.max_y).then_some(b)
+    }
+
+    /// The disparities `X_L - X_R` a point seen by both cameras can have, `(min, max)` pixels:
+    /// from the left image's near edge against the right image's far edge, and back. The
+    /// minimum is negative when the views overlap out to infinity (a parallel or diverging pair).
+    pub fn overlap_disparity_px(&self) -> (f64, f64) {
+        (
+            self.left_x_range_px.0 - self.right_x_range_px.1,
+            self.left_x_range_px.1 - self.right_x_range_px.0,
+        )
     }
 
     fn to_rect(
@@ -485,6 +528,14 @@ impl Rectification {
     pub fn depth_sigma_m(&self, depth_m: f64, disparity_sigma_px: f64) -> f64 {
         depth_m * depth_m * disparity_sigma_px / (self.focal_px * self.baseline_m)
     }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct RectBox {
+    min_x: f64,
+    max_x: f64,
+    min_y: f64,
+    max_y: f64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]

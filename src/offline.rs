@@ -13,6 +13,7 @@ use crate::eval::{evaluate, EvalError, EvalOptions, Report};
 
 use crate::ptv::{
     FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
+    StereoSearch,
 };
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger};
@@ -110,6 +111,8 @@ pub struct RunTotals {
     pub rejected: usize,
     /// Time spent inside `Pipeline::push`, seconds.
     pub pipeline_s: f64,
+    /// The stereo search the pipeline settled on.
+    pub stereo_search: Option<StereoSearch>,
 }
 
 impl RunTotals {
@@ -179,6 +182,7 @@ pub fn process_recording(
     mut progress: impl FnMut(usize),
 ) -> Result<RunTotals, OfflineError> {
     let mut pipeline = Pipeline::new(recording.rig.clone(), config)?;
+    let stereo_search = Some(*pipeline.stereo_search());
     let ProcessSinks {
         tracks: Sink {
             path: tracks_path,
@@ -192,7 +196,10 @@ pub fn process_recording(
     if let Some(p) = points.as_mut() {
         writeln!(p.writer, "{}", tables::POINTS_HEADER).map_err(io_error(p.path))?;
     }
-    let mut totals = RunTotals::default();
+    let mut totals = RunTotals {
+        stereo_search,
+        ..Default::default()
+    };
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::sync_channel(2);
         scope.spawn(move || {
@@ -266,11 +273,15 @@ pub fn run_in_memory(
     mut progress: impl FnMut(usize),
 ) -> Result<InMemoryRun, OfflineError> {
     let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
+    let stereo_search = Some(*pipeline.stereo_search());
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut truth = Vec::new();
     let mut tracks = Vec::new();
     let mut causal_tracks = Vec::new();
-    let mut totals = RunTotals::default();
+    let mut totals = RunTotals {
+        stereo_search,
+        ..Default::default()
+    };
     for n in 0..frames {
         let f = synth.next_frame();
         let output = push_pixels(

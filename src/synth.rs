@@ -72,10 +72,11 @@ pub enum Scenario {
     Dense,
     MovingHead,
     HololensRaw,
+    Convergent,
 }
 
 impl Scenario {
-    pub const ALL: [Scenario; 7] = [
+    pub const ALL: [Scenario; 8] = [
         Scenario::Uniform,
         Scenario::Flume,
         Scenario::WindTunnel,
@@ -83,6 +84,7 @@ impl Scenario {
         Scenario::Dense,
         Scenario::MovingHead,
         Scenario::HololensRaw,
+        Scenario::Convergent,
     ];
 
     pub fn name(self) -> &'static str {
@@ -94,6 +96,7 @@ impl Scenario {
             Scenario::Dense => "dense",
             Scenario::MovingHead => "moving-head",
             Scenario::HololensRaw => "hololens-raw",
+            Scenario::Convergent => "convergent",
         }
     }
 
@@ -106,6 +109,7 @@ impl Scenario {
             Scenario::Dense => "the uniform case with 1000 particles: overlaps and ambiguous matches",
             Scenario::MovingHead => "the flume seen by a wearer whose head turns and sways (pose per frame)",
             Scenario::HololensRaw => "raw HoloLens 2 geometry: distortion, 3 deg divergent axes, right camera rolled 180 deg, baseline along image y",
+            Scenario::Convergent => "lab rig: two 640x480 cameras, f = 2000 px, 0.3 m apart, toed in 15 deg each; 2 mm particles at 0.5-0.62 m",
         }
     }
 }
@@ -291,6 +295,37 @@ pub(crate) fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) 
     }
 }
 
+/// Two identical pinholes `baseline_m` apart, each turned `toe_in_rad` towards the other about
+/// the image's y axis, so their optical axes cross at `baseline_m / 2 / tan(toe_in_rad)`.
+pub fn convergent_rig(
+    width: u32,
+    height: u32,
+    f_px: f64,
+    baseline_m: f64,
+    toe_in_rad: f64,
+) -> StereoRig {
+    let camera = CameraModel::pinhole(
+        f_px,
+        (width as f64 - 1.0) / 2.0,
+        (height as f64 - 1.0) / 2.0,
+    );
+    // In a frame with x along the baseline: the left camera at the origin looks towards +x, the
+    // right one, at +baseline, towards -x.
+    let world_from_left = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in_rad);
+    let right_from_world =
+        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), -toe_in_rad).inverse();
+    StereoRig {
+        width,
+        height,
+        left: camera,
+        right: camera,
+        right_from_left: Isometry3::from_parts(
+            Translation3::from(-(right_from_world * Vector3::new(baseline_m, 0.0, 0.0))),
+            right_from_world * world_from_left,
+        ),
+    }
+}
+
 /// The raw HoloLens 2 front-camera geometry (published raw intrinsics, a plausible lens model).
 pub fn hololens_raw_rig() -> StereoRig {
     let left = CameraModel {
@@ -444,6 +479,26 @@ impl ScenarioSpec {
                 domain_max: Point3::new(0.2, 0.15, 0.68),
                 ..flume()
             },
+            Scenario::Convergent => {
+                let toe_in = 15f64.to_radians();
+                // The rig frame is the left camera's; the particles sit around the axes' crossing
+                // (0.15 m across, 0.56 m out, in the baseline's frame).
+                let left_from_baseline =
+                    UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in).inverse();
+                let crossing = left_from_baseline * Point3::new(0.15, 0.0, 0.15 / toe_in.tan());
+                let half = Vector3::new(0.05, 0.04, 0.05);
+                ScenarioSpec {
+                    rig: convergent_rig(640, 480, 2000.0, 0.3, toe_in),
+                    default_particles: 40,
+                    domain_min: crossing - half,
+                    domain_max: crossing + half,
+                    flow: Flow::Uniform(Vector3::new(0.06, -0.025, 0.01)),
+                    diameter_m: 0.002,
+                    diameter_sd_m: 0.0002,
+                    illumination: 180.0 * 4.0 * PI * 0.3,
+                    ..flume()
+                }
+            }
         }
     }
 }

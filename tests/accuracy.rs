@@ -72,6 +72,19 @@ fn moving_head_world_velocities_meet_the_same_bounds() {
     assert_bounds("moving-head", &run(Scenario::MovingHead, None, 1), 1.0);
 }
 
+/// A toed-in lab rig: disparities near 1,000 px, four times the published K of a quarter of the
+/// image width. The search from the views' overlap finds them with no config.
+#[test]
+fn a_convergent_lab_rig_meets_the_bounds_untuned() {
+    let spec = ScenarioSpec::new(Scenario::Convergent);
+    assert_eq!(
+        spec.config,
+        PipelineConfig::default(),
+        "the scene runs on the defaults"
+    );
+    assert_bounds("convergent", &run(Scenario::Convergent, None, 1), 1.0);
+}
+
 #[test]
 fn raw_hololens_geometry_within_a_factor_of_one_and_a_half() {
     assert_bounds("hololens-raw", &run(Scenario::HololensRaw, None, 1), 1.5);

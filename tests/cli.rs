@@ -398,6 +398,49 @@ fn serving_beyond_loopback_without_secrets_or_tls_says_what_is_exposed() {
     assert!(e.contains("the same"), "{e}");
 }
 
+/// `--depth-range` bounds the stereo search: the run says which depths it searched, and a range
+/// the two cameras cannot both see is refused with the range they can.
+#[test]
+fn depth_range_bounds_the_stereo_search_and_says_so() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "convergent", "12");
+    let tracks = dir.path().join("tracks.csv");
+    let (rec_s, tracks_s) = (s(&rec), s(&tracks));
+    let with_range = |range: Option<&str>| {
+        let mut args = vec!["process", rec_s, "--out", tracks_s];
+        args.extend(range.map(|r| ["--depth-range", r]).into_iter().flatten());
+        args.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let stderr_of = |args: Vec<String>| {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let out = mrptv(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{stderr}");
+        stderr
+    };
+    let stderr = stderr_of(with_range(None));
+    assert!(
+        stderr.contains("stereo search: depths 0.") && stderr.contains("epipolar band 2.00 px"),
+        "{stderr}"
+    );
+    let stderr = stderr_of(with_range(Some("0.45..0.7")));
+    assert!(
+        stderr.contains("stereo search: depths 0.450..0.700 m"),
+        "{stderr}"
+    );
+    let refused = |range: &str| {
+        let args = with_range(Some(range));
+        fails(&args.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let e = refused("5..9");
+    assert!(
+        e.contains("depth_range_m 5..9 m lies outside") && e.contains(" m)"),
+        "{e}"
+    );
+    let e = refused("0.8..0.3");
+    assert!(e.contains("0 < NEAR < FAR"), "{e}");
+}
+
 /// Every command's `--help` and `-h` (and `--version`) are as recorded in `tests/cli_help/`:
 /// scripts and the docs quote them, so they change only on purpose (`MRPTV_UPDATE_GOLDEN=1`
 /// rewrites the files; review the diff).

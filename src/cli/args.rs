@@ -207,3 +207,36 @@ pub fn lan_address() -> Option<std::net::IpAddr> {
     let ip = socket.local_addr().ok()?.ip();
     (!ip.is_unspecified() && !ip.is_loopback()).then_some(ip)
 }
+
+/// `--depth-range NEAR..FAR`: the measurement volume's depth range, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthRange {
+    pub near_m: f64,
+    pub far_m: f64,
+}
+
+impl std::str::FromStr for DepthRange {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let usage = || format!("'{s}' is not NEAR..FAR in metres (e.g. 0.3..0.8, or 0.5..inf)");
+        let (near, far) = s.split_once("..").ok_or_else(usage)?;
+        let near_m: f64 = near.trim().parse().map_err(|_| usage())?;
+        let far_m: f64 = far.trim().parse().map_err(|_| usage())?;
+        if !(near_m.is_finite() && near_m > 0.0 && far_m > near_m) {
+            return Err(format!("{s}: need 0 < NEAR < FAR (metres)"));
+        }
+        Ok(Self { near_m, far_m })
+    }
+}
+
+impl DepthRange {
+    /// An explicit volume replaces the stereo search from the views' overlap, and the method's
+    /// image-fraction K.
+    pub fn apply(range: Option<Self>, config: &mut mrptv::ptv::PipelineConfig) {
+        if let Some(r) = range {
+            config.stereo.depth_range_m = Some([r.near_m, r.far_m]);
+            config.stereo.disparity_range_fraction = None;
+        }
+    }
+}

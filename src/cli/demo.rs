@@ -6,6 +6,7 @@ use mrptv::eval::EvalOptions;
 use mrptv::offline;
 use mrptv::synth::{Scenario, ScenarioSpec};
 
+use super::args::DepthRange;
 use super::{method_config, progress_bar};
 
 #[derive(clap::Args)]
@@ -21,6 +22,10 @@ pub struct Args {
     /// Use the published method's choices instead of mrptv's defaults.
     #[arg(long)]
     method: bool,
+    /// The measurement volume's depths, metres along the cameras' common viewing direction:
+    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
+    #[arg(long, value_name = "NEAR..FAR")]
+    depth_range: Option<DepthRange>,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -30,15 +35,17 @@ pub fn run(args: Args) -> Result<()> {
         particles,
         seed,
         method,
+        depth_range,
     } = args;
     let spec = ScenarioSpec::new(scenario);
     let frames = frames.unwrap_or(spec.default_frames);
     let particles = particles.unwrap_or(spec.default_particles);
-    let config = if method {
+    let mut config = if method {
         method_config(&spec.config)
     } else {
         spec.config.clone()
     };
+    DepthRange::apply(depth_range, &mut config);
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
@@ -56,6 +63,9 @@ pub fn run(args: Args) -> Result<()> {
         bar.set_position(n as u64)
     })?;
     bar.finish_and_clear();
+    if let Some(search) = run.totals.stereo_search {
+        println!("stereo search: {search}");
+    }
     println!(
         "engine: {:.0} stereo frames/s on one thread, {:.1} matches/frame, {} vectors\n",
         run.totals.frames as f64 / run.totals.pipeline_s.max(1e-9),

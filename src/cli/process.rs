@@ -9,6 +9,7 @@ use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 
+use super::args::DepthRange;
 use super::{create_output, method_config, progress_bar, runtime, termination};
 
 #[derive(clap::Args)]
@@ -27,6 +28,10 @@ pub struct Args {
     /// Use the published method's choices (no mrptv improvements) as the base config.
     #[arg(long)]
     method: bool,
+    /// The measurement volume's depths, metres along the cameras' common viewing direction:
+    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
+    #[arg(long, value_name = "NEAR..FAR")]
+    depth_range: Option<DepthRange>,
     /// Log the run to Rerun: file:RUN.rrd, connect (a viewer on this machine) or
     /// connect:URL. Repeat for several.
     #[arg(long, value_name = "SINK")]
@@ -43,11 +48,13 @@ pub fn run(args: Args) -> Result<()> {
         points,
         config,
         method,
+        depth_range,
         mut rerun,
         rerun_images_every,
     } = args;
     let recording = Recording::open(&rec)?;
-    let config = load_config(&rec, config.as_deref(), method)?;
+    let mut config = load_config(&rec, config.as_deref(), method)?;
+    DepthRange::apply(depth_range, &mut config);
     let mut tracks = create_output(&out)?;
     let proxy = start_proxy(&mut rerun)?;
     let logger = if rerun.is_empty() {
@@ -85,6 +92,9 @@ pub fn run(args: Args) -> Result<()> {
     bar.finish_and_clear();
     if let Some(logger) = logger {
         report_rerun(logger, &rerun);
+    }
+    if let Some(search) = totals.stereo_search {
+        eprintln!("stereo search: {search}");
     }
     eprintln!(
         "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough) -> {}; pipeline {:.0} frames/s",

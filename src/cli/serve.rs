@@ -13,7 +13,7 @@ use mrptv::server::{self, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tls::ServerTls;
 
-use super::args::{lan_address, setup_tls, GuardArgs, TlsArgs};
+use super::args::{lan_address, setup_tls, DepthRange, GuardArgs, TlsArgs};
 use super::{init_logging, method_config, runtime, termination};
 
 #[derive(clap::Args)]
@@ -36,6 +36,10 @@ pub struct Args {
     /// Use the published method's choices as the sessions' default config.
     #[arg(long)]
     method: bool,
+    /// The measurement volume's depths, metres along the cameras' common viewing direction:
+    /// NEAR..FAR (FAR may be inf) for sessions whose hello brings no config [default: every depth both cameras see].
+    #[arg(long, value_name = "NEAR..FAR")]
+    depth_range: Option<DepthRange>,
     /// Frames a session may queue before the oldest is dropped.
     #[arg(long, default_value_t = ServerOptions::default().queue_frames)]
     queue_frames: usize,
@@ -65,12 +69,14 @@ pub fn run(args: Args) -> Result<()> {
         Some(path) => mrptv::config::load(&path)?,
         None => PipelineConfig::default(),
     };
+    let mut config = if args.method {
+        method_config(&config)
+    } else {
+        config
+    };
+    DepthRange::apply(args.depth_range, &mut config);
     let mut options = ServerOptions {
-        config: if args.method {
-            method_config(&config)
-        } else {
-            config
-        },
+        config,
         queue_frames: args.queue_frames,
         record_dir: args.record,
         rerun: (!args.rerun.is_empty()).then(|| RerunOptions {

@@ -14,6 +14,7 @@ pub use detect::{Detection, Detector};
 pub use pipeline::{
     FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError, VelocityVector,
 };
+pub use stereo::StereoSearch;
 
 use crate::geometry::PixelPoint;
 use nalgebra::Isometry3;

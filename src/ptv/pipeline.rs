@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::detect::{DetectConfig, Detection, Detector};
 use super::kinematics::{fit_line, fit_quadratic};
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
-use super::stereo::{match_stereo, PairHistory, StereoConfig};
+use super::stereo::{match_stereo, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
 use crate::geometry::{CalibrationError, PixelPoint, Rectification, StereoRig};
 
@@ -59,8 +59,9 @@ pub struct PipelineConfig {
 }
 
 impl PipelineConfig {
-    /// The published method with none of mrptv's improvements: per-particle choices, no track
-    /// memory in stereo, no neighbour prediction, no touching-particle split, no rejection.
+    /// The published method with none of mrptv's improvements: per-particle choices, stereo
+    /// search ranges as image fractions (K = 0.25, S = 0.01), no track memory in stereo, no
+    /// neighbour prediction, no touching-particle split, no rejection.
     pub fn method() -> Self {
         use super::link::Assignment;
         let mut c = Self::default();
@@ -74,6 +75,8 @@ impl PipelineConfig {
         c.stereo.assignment = Assignment::PerParticle;
         c.stereo.pair_memory = 0.0;
         c.stereo.weight_row = 1.0;
+        c.stereo.disparity_range_fraction = Some(0.25);
+        c.stereo.epipolar_band_fraction = Some(0.01);
         c.velocity.max_residual_ratio = 0.0;
         c
     }
@@ -89,11 +92,11 @@ impl PipelineConfig {
             ("link.weight_x", self.link.weight_x),
             (
                 "stereo.disparity_range_fraction",
-                self.stereo.disparity_range_fraction,
+                self.stereo.disparity_range_fraction.unwrap_or(0.0),
             ),
             (
                 "stereo.epipolar_band_fraction",
-                self.stereo.epipolar_band_fraction,
+                self.stereo.epipolar_band_fraction.unwrap_or(0.0),
             ),
             ("stereo.weight_diameter", self.stereo.weight_diameter),
             ("stereo.weight_speed", self.stereo.weight_speed),
@@ -128,6 +131,20 @@ impl PipelineConfig {
         }
         if self.detect.min_area_px > self.detect.max_area_px {
             return bad("detect.min_area_px", "must not exceed detect.max_area_px");
+        }
+        if !(self.stereo.epipolar_band_px.is_finite() && self.stereo.epipolar_band_px > 0.0) {
+            return bad(
+                "stereo.epipolar_band_px",
+                "must be a finite number of pixels > 0",
+            );
+        }
+        if let Some([near_m, far_m]) = self.stereo.depth_range_m {
+            if !(near_m.is_finite() && near_m > 0.0 && far_m > near_m) {
+                return bad(
+                    "stereo.depth_range_m",
+                    "must be [near, far] metres with 0 < near < far (far may be inf)",
+                );
+            }
         }
         if self.stereo.pair_memory >= 1.0 {
             return bad(
@@ -268,6 +285,7 @@ pub struct Pipeline {
     right_detector: Detector,
     left_linker: CameraLinker,
     right_linker: CameraLinker,
+    stereo_search: StereoSearch,
     pair_history: PairHistory,
     /// Live 3D tracks keyed by their left track id.
     tracks: BTreeMap<u64, Track3d>,
@@ -283,6 +301,8 @@ impl Pipeline {
     pub fn new(rig: StereoRig, config: PipelineConfig) -> Result<Self, PipelineError> {
         config.validate()?;
         let rectification = Rectification::new(&rig)?;
+        let stereo_search = StereoSearch::new(&config.stereo, &rectification)
+            .map_err(|e| PipelineError::Config(e.to_string()))?;
         Ok(Self {
             config,
             rig,
@@ -291,6 +311,7 @@ impl Pipeline {
             right_detector: Detector::new(),
             left_linker: CameraLinker::new(),
             right_linker: CameraLinker::new(),
+            stereo_search,
             pair_history: PairHistory::new(),
             tracks: BTreeMap::new(),
             next_track_id: 0,
@@ -310,6 +331,11 @@ impl Pipeline {
 
     pub fn rectification(&self) -> &Rectification {
         &self.rectification
+    }
+
+    /// The stereo hard filter this pipeline settled on for its rig and config.
+    pub fn stereo_search(&self) -> &StereoSearch {
+        &self.stereo_search
     }
 
     fn check_image(
@@ -384,6 +410,7 @@ impl Pipeline {
             &left,
             &right,
             scale,
+            &self.stereo_search,
             &mut self.pair_history,
             &self.config.stereo,
         );

@@ -1,7 +1,11 @@
 //! Stage 3: stereo matching in the rectified pair (method section 3.3).
 //!
 //! Hard filter (eq. 7): the right particle must lie on the left one's epipolar row within S and at
-//! a positive disparity below K. Among the survivors the cost F (eq. 8) mixes diameter, apparent
+//! a disparity inside the search range. Beyond the method, both come from geometry rather than
+//! image fractions ([`StereoSearch`]): the disparity range from the depths where the two views
+//! overlap (or the measurement volume's depth range, when given), since in the rectified pair
+//! disparity = f h / z; S in pixels, from how well a calibrated, rectified pair keeps a true pair
+//! on one row. Among the survivors the cost F (eq. 8) mixes diameter, apparent
 //! speed U, brightness and the row difference; x is left out because it carries the depth.
 //!
 //! Beyond the method: one-to-one assignment (a right particle serves one left particle), and
@@ -18,14 +22,27 @@ use serde::{Deserialize, Serialize};
 use super::link::{
     assign, normalising_mean, Assignment, CostScale, Feature, LinkedFeature, SortedByX,
 };
+use crate::geometry::Rectification;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StereoConfig {
-    /// K as a fraction of the rectified image width (method: 0.25).
-    pub disparity_range_fraction: f64,
-    /// S as a fraction of the rectified image height (method: 0.01).
-    pub epipolar_band_fraction: f64,
+    /// The measurement volume's depth range, `[near, far]` metres along the rectified viewing
+    /// direction (`far` may be `inf`). Absent: every depth at which the two views overlap.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_range_m: Option<[f64; 2]>,
+    /// S: how far, in rectified pixels, the rows of a true pair may differ: calibration error
+    /// plus centroid noise. A calibrated pair keeps them well inside 1 px; 2 leaves room for a
+    /// fair calibration without letting many ghosts in.
+    pub epipolar_band_px: f64,
+    /// The method's K as a fraction of the rectified image width (method: 0.25). When set, it
+    /// replaces the disparity range from geometry (and `depth_range_m`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub disparity_range_fraction: Option<f64>,
+    /// The method's S as a fraction of the rectified image height (method: 0.01). When set, it
+    /// replaces `epipolar_band_px`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub epipolar_band_fraction: Option<f64>,
     /// c1, c2, c3: weights of the diameter, speed and brightness terms (published: 0.100, 0.036,
     /// 0.018).
     pub weight_diameter: f64,
@@ -47,8 +64,10 @@ pub struct StereoConfig {
 impl Default for StereoConfig {
     fn default() -> Self {
         Self {
-            disparity_range_fraction: 0.25,
-            epipolar_band_fraction: 0.01,
+            depth_range_m: None,
+            epipolar_band_px: 2.0,
+            disparity_range_fraction: None,
+            epipolar_band_fraction: None,
             weight_diameter: 0.100,
             weight_speed: 0.036,
             weight_brightness: 0.018,
@@ -56,6 +75,93 @@ impl Default for StereoConfig {
             assignment: Assignment::OneToOne,
             pair_memory: 0.8,
         }
+    }
+}
+
+/// The hard filter's bounds in the rectified pair, settled once per rig and config.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct StereoSearch {
+    /// A right particle matches only at a disparity `X_L - X_R` in this open interval, pixels.
+    pub min_disparity_px: f64,
+    pub max_disparity_px: f64,
+    /// ... and on a row within this many pixels of the left particle's.
+    pub epipolar_band_px: f64,
+    /// The depths those disparities stand for, metres (`far` is infinite for a zero minimum).
+    pub near_m: f64,
+    pub far_m: f64,
+}
+
+/// Why no stereo search can be set up for a rig and config.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SearchError {
+    #[error(
+        "stereo.depth_range_m {near_m}..{far_m} m lies outside the depths at which the two cameras \
+         see the same points ({overlap_near_m:.3}..{overlap_far_m:.3} m)"
+    )]
+    DepthRangeOutsideOverlap {
+        near_m: f64,
+        far_m: f64,
+        overlap_near_m: f64,
+        overlap_far_m: f64,
+    },
+}
+
+impl StereoSearch {
+    pub fn new(config: &StereoConfig, rect: &Rectification) -> Result<Self, SearchError> {
+        let fh = rect.focal_px * rect.baseline_m;
+        let depth = |disparity: f64| {
+            if disparity > 0.0 {
+                fh / disparity
+            } else {
+                f64::INFINITY
+            }
+        };
+        let (overlap_min, overlap_max) = rect.overlap_disparity_px();
+        let (min_disparity_px, max_disparity_px) =
+            match (config.disparity_range_fraction, config.depth_range_m) {
+                (Some(fraction), _) => (0.0, fraction * 2.0 * rect.half_width_px),
+                (None, Some([near_m, far_m])) => {
+                    let (min, max) = (
+                        (fh / far_m).max(overlap_min).max(0.0),
+                        (fh / near_m).min(overlap_max),
+                    );
+                    if min >= max {
+                        return Err(SearchError::DepthRangeOutsideOverlap {
+                            near_m,
+                            far_m,
+                            overlap_near_m: depth(overlap_max),
+                            overlap_far_m: depth(overlap_min),
+                        });
+                    }
+                    (min, max)
+                }
+                (None, None) => (overlap_min.max(0.0), overlap_max),
+            };
+        let epipolar_band_px = match config.epipolar_band_fraction {
+            Some(fraction) => fraction * 2.0 * rect.half_height_px,
+            None => config.epipolar_band_px,
+        };
+        Ok(Self {
+            min_disparity_px,
+            max_disparity_px,
+            epipolar_band_px,
+            near_m: depth(max_disparity_px),
+            far_m: depth(min_disparity_px),
+        })
+    }
+}
+
+impl std::fmt::Display for StereoSearch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "depths {:.3}..{:.3} m (disparity {:.1}..{:.1} px), epipolar band {:.2} px",
+            self.near_m,
+            self.far_m,
+            self.min_disparity_px,
+            self.max_disparity_px,
+            self.epipolar_band_px
+        )
     }
 }
 
@@ -68,18 +174,22 @@ pub fn match_stereo(
     left: &[LinkedFeature],
     right: &[LinkedFeature],
     scale: CostScale,
+    search: &StereoSearch,
     history: &mut PairHistory,
     config: &StereoConfig,
 ) -> Vec<(usize, usize)> {
-    let max_disparity = config.disparity_range_fraction * 2.0 * scale.half_width_px;
-    let band = config.epipolar_band_fraction * 2.0 * scale.half_height_px;
+    let (min_disparity, max_disparity) = (search.min_disparity_px, search.max_disparity_px);
+    let band = search.epipolar_band_px;
     let all = || left.iter().chain(right);
     let d_ave = normalising_mean(all().map(|f| f.feature.diameter_px));
     let b_ave = normalising_mean(all().map(|f| f.feature.brightness));
     let u_ave = normalising_mean(all().filter_map(LinkedFeature::speed_px));
     let passes = |l: &Feature, r: &Feature| {
         let disparity = l.rect.x - r.rect.x;
-        disparity > 0.0 && disparity < max_disparity && (l.rect.y - r.rect.y).abs() <= band
+        disparity > min_disparity
+            && disparity > 0.0
+            && disparity < max_disparity
+            && (l.rect.y - r.rect.y).abs() <= band
     };
 
     let right_features: Vec<Feature> = right.iter().map(|r| r.feature).collect();
@@ -88,7 +198,8 @@ pub fn match_stereo(
     let mut next_history = PairHistory::new();
     let mut candidates = Vec::new();
     for (li, l) in left.iter().enumerate() {
-        for ri in sorted.within(l.feature.rect.x - max_disparity, l.feature.rect.x) {
+        let x = l.feature.rect.x;
+        for ri in sorted.within(x - max_disparity, x - min_disparity.max(0.0)) {
             let r = &right[ri];
             if !passes(&l.feature, &r.feature) {
                 continue;
@@ -129,6 +240,15 @@ mod tests {
         half_height_px: 240.0,
     };
 
+    /// The published method's search on SCALE: K = 0.25 of the width, S = 0.01 of the height.
+    const SEARCH: StereoSearch = StereoSearch {
+        min_disparity_px: 0.0,
+        max_disparity_px: 160.0,
+        epipolar_band_px: 4.8,
+        near_m: 0.0,
+        far_m: f64::INFINITY,
+    };
+
     fn linked(track_id: u64, x: f64, y: f64, diameter_px: f64) -> LinkedFeature {
         LinkedFeature {
             feature: Feature {
@@ -154,6 +274,7 @@ mod tests {
             &left,
             &right,
             SCALE,
+            &SEARCH,
             &mut PairHistory::new(),
             &StereoConfig::default(),
         );
@@ -168,6 +289,7 @@ mod tests {
             &left,
             &right,
             SCALE,
+            &SEARCH,
             &mut PairHistory::new(),
             &StereoConfig::default(),
         );
@@ -183,7 +305,7 @@ mod tests {
             let left = [linked(1, 50.0, 10.0, 8.0)];
             let right = [linked(2, 20.0, 10.0, 8.0), linked(3, 30.0, 10.0, 5.0)];
             assert_eq!(
-                match_stereo(&left, &right, SCALE, &mut history, &config),
+                match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config),
                 vec![(0, 0)]
             );
         }
@@ -196,12 +318,95 @@ mod tests {
             ..config.clone()
         };
         assert_eq!(
-            match_stereo(&left, &right, SCALE, &mut fresh, &method),
+            match_stereo(&left, &right, SCALE, &SEARCH, &mut fresh, &method),
             vec![(0, 1)]
         );
         assert_eq!(
-            match_stereo(&left, &right, SCALE, &mut history, &config),
+            match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config),
             vec![(0, 0)]
         );
+    }
+
+    fn rectification(rig: &crate::geometry::StereoRig) -> Rectification {
+        Rectification::new(rig).expect("a valid rig")
+    }
+
+    #[test]
+    fn a_parallel_pair_searches_every_depth_its_views_share() {
+        // f = 400 px, h = 0.1 m, 640 px wide: the views overlap from f h / 639 px = 0.063 m out.
+        let rect = rectification(&crate::synth::parallel_rig(640, 480, 400.0, 0.1));
+        let search = StereoSearch::new(&StereoConfig::default(), &rect).expect("search");
+        assert_eq!(search.min_disparity_px, 0.0);
+        assert!((search.max_disparity_px - 639.0).abs() < 1e-6, "{search}");
+        assert!((search.near_m - 40.0 / 639.0).abs() < 1e-9, "{search}");
+        assert!(search.far_m.is_infinite());
+        assert_eq!(search.epipolar_band_px, 2.0);
+    }
+
+    #[test]
+    fn a_depth_range_bounds_the_disparities_by_f_h_over_z() {
+        let rect = rectification(&crate::synth::parallel_rig(640, 480, 400.0, 0.1));
+        let config = StereoConfig {
+            depth_range_m: Some([0.5, 2.0]),
+            ..Default::default()
+        };
+        let search = StereoSearch::new(&config, &rect).expect("search");
+        assert!((search.min_disparity_px - 20.0).abs() < 1e-9, "{search}");
+        assert!((search.max_disparity_px - 80.0).abs() < 1e-9, "{search}");
+        assert!((search.near_m - 0.5).abs() < 1e-12 && (search.far_m - 2.0).abs() < 1e-12);
+        // A right particle 100 px left of its partner is nearer than 0.5 m: refused.
+        let left = [linked(1, 50.0, 0.0, 5.0)];
+        let near = [linked(2, -50.0, 0.0, 5.0)];
+        let inside = [linked(3, -10.0, 0.0, 5.0)];
+        let mut history = PairHistory::new();
+        assert!(match_stereo(&left, &near, SCALE, &search, &mut history, &config).is_empty());
+        assert_eq!(
+            match_stereo(&left, &inside, SCALE, &search, &mut history, &config),
+            vec![(0, 0)]
+        );
+    }
+
+    #[test]
+    fn a_depth_range_the_cameras_cannot_both_see_is_refused_with_the_range_they_can() {
+        let rect = rectification(&crate::synth::parallel_rig(640, 480, 400.0, 0.1));
+        let config = StereoConfig {
+            depth_range_m: Some([0.01, 0.05]),
+            ..Default::default()
+        };
+        let e = StereoSearch::new(&config, &rect).unwrap_err().to_string();
+        assert!(e.contains("0.01..0.05") && e.contains("0.063..inf"), "{e}");
+    }
+
+    #[test]
+    fn a_convergent_pair_searches_only_the_disparities_where_its_views_cross() {
+        // Two 640x480 cameras, f = 2000 px (9 degrees half field of view), 0.3 m apart, each
+        // turned 15 degrees inwards: the optical axes cross at 0.15 / tan(15 deg) = 0.56 m.
+        let angle = 15f64.to_radians();
+        let rig = crate::synth::convergent_rig(640, 480, 2000.0, 0.3, angle);
+        let rect = rectification(&rig);
+        let search = StereoSearch::new(&StereoConfig::default(), &rect).expect("search");
+        // Depth along the common direction: the axes' crossing lies inside the range, and the
+        // range is finite (beyond it the views part again); K as a fraction of the width
+        // (0.25 x ~690 px) would have missed every particle near the crossing (~1,070 px).
+        let crossing_disparity = rect.focal_px * rect.baseline_m / (0.15 / angle.tan());
+        assert!(
+            search.min_disparity_px < crossing_disparity
+                && crossing_disparity < search.max_disparity_px,
+            "{search}, crossing at {crossing_disparity:.1} px"
+        );
+        assert!(
+            search.min_disparity_px > 0.0 && search.far_m.is_finite(),
+            "{search}"
+        );
+        assert!(crossing_disparity > 0.25 * 2.0 * rect.half_width_px);
+    }
+
+    #[test]
+    fn the_method_keeps_its_image_fractions() {
+        let rect = rectification(&crate::synth::parallel_rig(640, 480, 400.0, 0.1));
+        let search =
+            StereoSearch::new(&crate::ptv::PipelineConfig::method().stereo, &rect).expect("search");
+        assert!((search.max_disparity_px - 0.25 * 2.0 * rect.half_width_px).abs() < 1e-9);
+        assert!((search.epipolar_band_px - 0.01 * 2.0 * rect.half_height_px).abs() < 1e-9);
     }
 }
