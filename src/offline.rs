@@ -113,6 +113,10 @@ pub struct RunTotals {
     pub pipeline_s: f64,
     /// The stereo search the pipeline settled on.
     pub stereo_search: Option<StereoSearch>,
+    pub linked_left: usize,
+    pub linked_right: usize,
+    pub stereo_candidates: usize,
+    pub left_with_candidates: usize,
 }
 
 impl RunTotals {
@@ -124,7 +128,121 @@ impl RunTotals {
         self.vectors += s.vectors;
         self.rejected += s.rejected;
         self.pipeline_s += pipeline_s;
+        self.linked_left += s.linked_left;
+        self.linked_right += s.linked_right;
+        self.stereo_candidates += s.stereo_candidates;
+        self.left_with_candidates += s.left_with_candidates;
     }
+
+    /// What a run settled on, how healthy it was, and in words what its figures say cannot be
+    /// trusted; a run that gave no vectors always gets a warning saying why.
+    pub fn health(&self, config: &PipelineConfig) -> RunHealth {
+        let ratio = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+        let detections = self.detections_left + self.detections_right;
+        let detections_per_image = ratio(detections, 2 * self.frames);
+        let linked_fraction = ratio(self.linked_left + self.linked_right, detections);
+        let candidates_per_particle = ratio(self.stereo_candidates, self.left_with_candidates);
+        let matched_fraction = ratio(self.matches, self.detections_left);
+        let vector_fraction = ratio(self.vectors, self.matches);
+        let box_px = config.link.box_half_side_px;
+        let window = 2 * config.velocity.half_window_frames + 1;
+        let search = self
+            .stereo_search
+            .map_or_else(|| "not set up".to_string(), |s| s.to_string());
+        let settled = format!(
+            "stereo search {search}; linking box +-{box_px} px; velocity window {window} frames; \
+             threshold {} grey levels above the local mean",
+            -config.detect.contrast_c
+        );
+        let summary = format!(
+            "{detections_per_image:.1} detections/image, {:.0} % linked to an earlier frame, \
+             {candidates_per_particle:.2} stereo candidates per matchable particle, {:.0} % of \
+             left detections matched, {:.0} % of matched particles given a velocity",
+            100.0 * linked_fraction,
+            100.0 * matched_fraction,
+            100.0 * vector_fraction
+        );
+        let mut warnings = Vec::new();
+        if self.vectors == 0 {
+            warnings.push(if self.frames == 0 {
+                "no vectors: the recording has no frames".to_string()
+            } else if detections == 0 {
+                format!(
+                    "no vectors: no particle was detected in any image (a particle must be {} grey \
+                     levels brighter than its 15 px neighbourhood, detect.contrast_c, and its \
+                     area within detect.min_area_px..max_area_px)",
+                    -config.detect.contrast_c
+                )
+            } else if self.matches == 0 {
+                format!(
+                    "no vectors: particles were detected ({detections_per_image:.1} per image) but \
+                     none matched between the cameras, so none lay in the stereo search: {search}; \
+                     check rig.json, or give the measurement volume with --depth-range"
+                )
+            } else if self.frames < window {
+                format!(
+                    "no vectors: the recording has {} frames, and a centred velocity needs a \
+                     particle seen through {window} (velocity.half_window_frames = {})",
+                    self.frames, config.velocity.half_window_frames
+                )
+            } else {
+                format!(
+                    "no vectors: {} particles were matched between the cameras, but none was \
+                     followed through the {window} frames a centred velocity needs ({:.0} % of \
+                     detections linked to an earlier frame): particles may move more than the \
+                     linking box (+-{box_px} px) per frame",
+                    self.matches,
+                    100.0 * linked_fraction
+                )
+            });
+        } else {
+            if linked_fraction < 0.5 {
+                warnings.push(format!(
+                    "only {:.0} % of detections linked to an earlier frame: particles may move \
+                     more than the linking box (+-{box_px} px) per frame; vectors will be few",
+                    100.0 * linked_fraction
+                ));
+            }
+            // Only frames at least M from either end can carry a centred velocity.
+            let centred_frames = self.frames.saturating_sub(window - 1);
+            let possible = ratio(centred_frames, self.frames);
+            if vector_fraction < 0.2 * possible && linked_fraction >= 0.5 {
+                warnings.push(format!(
+                    "only {:.1} % of the particles matched in both cameras were given a velocity: \
+                     tracks break before the {window} frames a centred velocity needs; particles \
+                     may move more than the linking box (+-{box_px} px) per frame",
+                    100.0 * vector_fraction
+                ));
+            }
+            if candidates_per_particle > 2.5 {
+                warnings.push(format!(
+                    "a matchable particle had {candidates_per_particle:.1} stereo candidates on \
+                     average: matches are ambiguous and ghosts likely; narrow --depth-range or \
+                     check the calibration"
+                ));
+            }
+            if matched_fraction < 0.3 {
+                warnings.push(format!(
+                    "only {:.0} % of left detections found a partner in the right image: check \
+                     rig.json and the stereo search ({search})",
+                    100.0 * matched_fraction
+                ));
+            }
+        }
+        RunHealth {
+            settled,
+            summary,
+            warnings,
+        }
+    }
+}
+
+/// A run's settled parameters and health figures in words, and its warnings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunHealth {
+    pub settled: String,
+    pub summary: String,
+    pub warnings: Vec<String>,
 }
 
 /// An output of `process_recording`, with the path its errors are reported against.
@@ -306,4 +424,92 @@ pub fn run_in_memory(
         totals,
         report,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn healthy() -> RunTotals {
+        RunTotals {
+            frames: 100,
+            detections_left: 3000,
+            detections_right: 3000,
+            matches: 2900,
+            vectors: 2200,
+            linked_left: 2900,
+            linked_right: 2900,
+            stereo_candidates: 3500,
+            left_with_candidates: 2950,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_healthy_run_has_no_warnings() {
+        let health = healthy().health(&PipelineConfig::default());
+        assert!(health.warnings.is_empty(), "{:?}", health.warnings);
+        assert!(
+            health.summary.contains("30.0 detections/image")
+                && health.summary.contains("97 % linked"),
+            "{}",
+            health.summary
+        );
+    }
+
+    #[test]
+    fn every_run_without_vectors_says_why() {
+        let config = PipelineConfig::default();
+        let why = |totals: RunTotals| {
+            let warnings = totals.health(&config).warnings;
+            assert_eq!(warnings.len(), 1, "{warnings:?}");
+            warnings[0].clone()
+        };
+        let none = |t: RunTotals| RunTotals { vectors: 0, ..t };
+        assert!(why(none(RunTotals::default())).contains("no frames"));
+        let dark = RunTotals {
+            frames: 50,
+            ..Default::default()
+        };
+        assert!(why(dark).contains("no particle was detected"));
+        let unmatched = RunTotals {
+            matches: 0,
+            ..none(healthy())
+        };
+        assert!(why(unmatched).contains("none matched between the cameras"));
+        let short = RunTotals {
+            frames: 8,
+            ..none(healthy())
+        };
+        assert!(why(short).contains("has 8 frames"));
+        let broken = RunTotals {
+            linked_left: 300,
+            linked_right: 300,
+            ..none(healthy())
+        };
+        assert!(why(broken).contains("linking box"));
+    }
+
+    #[test]
+    fn tracks_that_break_and_ambiguous_matches_are_warned_of() {
+        let config = PipelineConfig::default();
+        let fast = RunTotals {
+            vectors: 20,
+            ..healthy()
+        };
+        let warnings = fast.health(&config).warnings;
+        assert!(
+            warnings.iter().any(|w| w.contains("tracks break")),
+            "{warnings:?}"
+        );
+        let crowded = RunTotals {
+            stereo_candidates: 9000,
+            ..healthy()
+        };
+        let warnings = crowded.health(&config).warnings;
+        assert!(
+            warnings.iter().any(|w| w.contains("ambiguous")),
+            "{warnings:?}"
+        );
+    }
 }

@@ -420,12 +420,15 @@ fn depth_range_bounds_the_stereo_search_and_says_so() {
     };
     let stderr = stderr_of(with_range(None));
     assert!(
-        stderr.contains("stereo search: depths 0.") && stderr.contains("epipolar band 2.00 px"),
+        stderr.contains("settled: stereo search depths 0.")
+            && stderr.contains("epipolar band 2.00 px")
+            && stderr.contains("health: ")
+            && !stderr.contains("warning"),
         "{stderr}"
     );
     let stderr = stderr_of(with_range(Some("0.45..0.7")));
     assert!(
-        stderr.contains("stereo search: depths 0.450..0.700 m"),
+        stderr.contains("stereo search depths 0.450..0.700 m"),
         "{stderr}"
     );
     let refused = |range: &str| {
@@ -439,6 +442,45 @@ fn depth_range_bounds_the_stereo_search_and_says_so() {
     );
     let e = refused("0.8..0.3");
     assert!(e.contains("0 < NEAR < FAR"), "{e}");
+}
+
+/// A run that gives no vectors exits cleanly but says why, in words.
+#[test]
+fn a_run_without_vectors_says_why() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let tracks = dir.path().join("tracks.csv");
+    let process = |rec: &Path, config: Option<&Path>| {
+        let mut args = vec!["process", s(rec), "--out", s(&tracks)];
+        args.extend(config.map(|c| ["--config", s(c)]).into_iter().flatten());
+        let out = mrptv(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{stderr}");
+        assert!(stderr.contains(" 0 vectors"), "{stderr}");
+        stderr
+    };
+    // The published search on a toed-in rig: K, a quarter of the image width, stops far short of
+    // the ~1,000 px disparities.
+    let convergent = synth(dir.path(), "convergent", "12");
+    let fractions = dir.path().join("fractions.toml");
+    fs::write(
+        &fractions,
+        "[stereo]\ndisparity_range_fraction = 0.25\nepipolar_band_fraction = 0.01\n",
+    )
+    .expect("config");
+    let stderr = process(&convergent, Some(&fractions));
+    assert!(
+        stderr.contains("warning: no vectors: particles were detected")
+            && stderr.contains("none matched between the cameras")
+            && stderr.contains("--depth-range"),
+        "{stderr}"
+    );
+    let short = synth(dir.path(), "flume", "6");
+    let stderr = process(&short, None);
+    assert!(
+        stderr.contains("warning: no vectors: the recording has 6 frames")
+            && stderr.contains("seen through 11"),
+        "{stderr}"
+    );
 }
 
 /// Every command's `--help` and `-h` (and `--version`) are as recorded in `tests/cli_help/`:

@@ -59,13 +59,11 @@ pub fn run(args: Args) -> Result<()> {
         window_frames: config.velocity.half_window_frames as u64,
         ..Default::default()
     };
-    let run = offline::run_in_memory(spec, config, frames, particles, seed, &eval, |n| {
+    let run = offline::run_in_memory(spec, config.clone(), frames, particles, seed, &eval, |n| {
         bar.set_position(n as u64)
     })?;
     bar.finish_and_clear();
-    if let Some(search) = run.totals.stereo_search {
-        println!("stereo search: {search}");
-    }
+    super::print_health(&run.totals.health(&config));
     println!(
         "engine: {:.0} stereo frames/s on one thread, {:.1} matches/frame, {} vectors\n",
         run.totals.frames as f64 / run.totals.pipeline_s.max(1e-9),

@@ -93,6 +93,15 @@ async fn termination() {
     }
 }
 
+/// What a run settled on and its health figures, then its warnings, on stderr.
+fn print_health(health: &mrptv::offline::RunHealth) {
+    eprintln!("settled: {}", health.settled);
+    eprintln!("health: {}", health.summary);
+    for warning in &health.warnings {
+        eprintln!("warning: {warning}");
+    }
+}
+
 /// The published method's choices, keeping a scenario's scale parameters (M, H, contrast).
 fn method_config(base: &PipelineConfig) -> PipelineConfig {
     let mut c = PipelineConfig::method();

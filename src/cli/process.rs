@@ -74,7 +74,7 @@ pub fn run(args: Args) -> Result<()> {
     let bar = progress_bar(recording.frames.len(), "process");
     let totals = offline::process_recording(
         &recording,
-        config,
+        config.clone(),
         ProcessSinks {
             tracks: Sink {
                 path: &out,
@@ -93,9 +93,6 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(logger) = logger {
         report_rerun(logger, &rerun);
     }
-    if let Some(search) = totals.stereo_search {
-        eprintln!("stereo search: {search}");
-    }
     eprintln!(
         "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough) -> {}; pipeline {:.0} frames/s",
         totals.frames,
@@ -106,6 +103,7 @@ pub fn run(args: Args) -> Result<()> {
         out.display(),
         totals.frames as f64 / totals.pipeline_s.max(1e-9)
     );
+    super::print_health(&totals.health(&config));
     if let Some(proxy) = proxy {
         println!(
             "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",

@@ -156,8 +156,11 @@ async fn serve(
         tokio::spawn(async move {
             let source = SyntheticSource::new(spec, 1, None, Encoding::Raw8);
             match client::replay(source, &options, stopped(stop), |_| {}).await {
-                Ok(r) => tracing::info!(frames = r.frames_sent, "demo headset stopped"),
-                Err(e) => tracing::error!("demo headset: {e}"),
+                // Logged under the binary's name, as before the CLI had modules.
+                Ok(r) => {
+                    tracing::info!(target: "mrptv", frames = r.frames_sent, "demo headset stopped")
+                }
+                Err(e) => tracing::error!(target: "mrptv", "demo headset: {e}"),
             }
         })
     });

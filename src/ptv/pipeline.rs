@@ -224,6 +224,12 @@ pub struct FrameStats {
     pub causal_vectors: usize,
     /// Centred vectors dropped by the smoothness check.
     pub rejected: usize,
+    /// Features that continue a track from an earlier frame, per camera.
+    pub linked_left: usize,
+    pub linked_right: usize,
+    /// Stereo pairs that passed the hard filter, and left features with at least one.
+    pub stereo_candidates: usize,
+    pub left_with_candidates: usize,
 }
 
 /// A frame as the pipeline saw it: its index, sensor time, and whether it came with a pose
@@ -406,7 +412,7 @@ impl Pipeline {
         let right = self
             .right_linker
             .push(&right_features, scale, &self.config.link);
-        let pairs = match_stereo(
+        let stereo = match_stereo(
             &left,
             &right,
             scale,
@@ -414,6 +420,11 @@ impl Pipeline {
             &mut self.pair_history,
             &self.config.stereo,
         );
+        let pairs = stereo.pairs;
+        out.stats.stereo_candidates = stereo.candidates;
+        out.stats.left_with_candidates = stereo.left_with_candidates;
+        out.stats.linked_left = left.iter().filter(|f| f.age > 1).count();
+        out.stats.linked_right = right.iter().filter(|f| f.age > 1).count();
 
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
         let mut tracks = BTreeMap::new();

@@ -168,8 +168,19 @@ impl std::fmt::Display for StereoSearch {
 /// Effective costs of (left track, right track) pairs that were candidates in the previous frame.
 pub type PairHistory = BTreeMap<(u64, u64), f64>;
 
-/// Matches left to right features; returns `(left index, right index)` pairs sorted by left index.
-/// `history` holds last frame's effective pair costs and is replaced by this frame's.
+/// What stereo matching found in one frame.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StereoMatch {
+    /// `(left index, right index)`, sorted by left index.
+    pub pairs: Vec<(usize, usize)>,
+    /// Pairs that passed the hard filter, before assignment.
+    pub candidates: usize,
+    /// Left features with at least one candidate.
+    pub left_with_candidates: usize,
+}
+
+/// Matches left to right features. `history` holds last frame's effective pair costs and is
+/// replaced by this frame's.
 pub fn match_stereo(
     left: &[LinkedFeature],
     right: &[LinkedFeature],
@@ -177,7 +188,7 @@ pub fn match_stereo(
     search: &StereoSearch,
     history: &mut PairHistory,
     config: &StereoConfig,
-) -> Vec<(usize, usize)> {
+) -> StereoMatch {
     let (min_disparity, max_disparity) = (search.min_disparity_px, search.max_disparity_px);
     let band = search.epipolar_band_px;
     let all = || left.iter().chain(right);
@@ -197,7 +208,9 @@ pub fn match_stereo(
     let memory = config.pair_memory;
     let mut next_history = PairHistory::new();
     let mut candidates = Vec::new();
+    let mut left_with_candidates = 0;
     for (li, l) in left.iter().enumerate() {
+        let before = candidates.len();
         let x = l.feature.rect.x;
         for ri in sorted.within(x - max_disparity, x - min_disparity.max(0.0)) {
             let r = &right[ri];
@@ -225,9 +238,15 @@ pub fn match_stereo(
             }
             candidates.push((effective, li, ri));
         }
+        left_with_candidates += usize::from(candidates.len() > before);
     }
     *history = next_history;
-    assign(candidates, left.len(), right.len(), config.assignment)
+    let count = candidates.len();
+    StereoMatch {
+        pairs: assign(candidates, left.len(), right.len(), config.assignment),
+        candidates: count,
+        left_with_candidates,
+    }
 }
 
 #[cfg(test)]
@@ -277,7 +296,8 @@ mod tests {
             &SEARCH,
             &mut PairHistory::new(),
             &StereoConfig::default(),
-        );
+        )
+        .pairs;
         assert!(pairs.is_empty(), "{pairs:?}");
     }
 
@@ -292,7 +312,8 @@ mod tests {
             &SEARCH,
             &mut PairHistory::new(),
             &StereoConfig::default(),
-        );
+        )
+        .pairs;
         assert_eq!(pairs, vec![(0, 1)]);
     }
 
@@ -305,7 +326,7 @@ mod tests {
             let left = [linked(1, 50.0, 10.0, 8.0)];
             let right = [linked(2, 20.0, 10.0, 8.0), linked(3, 30.0, 10.0, 5.0)];
             assert_eq!(
-                match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config),
+                match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config).pairs,
                 vec![(0, 0)]
             );
         }
@@ -318,11 +339,11 @@ mod tests {
             ..config.clone()
         };
         assert_eq!(
-            match_stereo(&left, &right, SCALE, &SEARCH, &mut fresh, &method),
+            match_stereo(&left, &right, SCALE, &SEARCH, &mut fresh, &method).pairs,
             vec![(0, 1)]
         );
         assert_eq!(
-            match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config),
+            match_stereo(&left, &right, SCALE, &SEARCH, &mut history, &config).pairs,
             vec![(0, 0)]
         );
     }
@@ -359,9 +380,13 @@ mod tests {
         let near = [linked(2, -50.0, 0.0, 5.0)];
         let inside = [linked(3, -10.0, 0.0, 5.0)];
         let mut history = PairHistory::new();
-        assert!(match_stereo(&left, &near, SCALE, &search, &mut history, &config).is_empty());
+        assert!(
+            match_stereo(&left, &near, SCALE, &search, &mut history, &config)
+                .pairs
+                .is_empty()
+        );
         assert_eq!(
-            match_stereo(&left, &inside, SCALE, &search, &mut history, &config),
+            match_stereo(&left, &inside, SCALE, &search, &mut history, &config).pairs,
             vec![(0, 0)]
         );
     }
