@@ -119,8 +119,22 @@ pub struct RunTotals {
     pub left_with_candidates: usize,
 }
 
+/// A run's health figures (see [`RunTotals::health`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct HealthFigures {
+    pub detections_per_image: f64,
+    /// Of all detections, those continuing a track from an earlier frame.
+    pub linked_fraction: f64,
+    /// Stereo candidates per left particle that had at least one.
+    pub stereo_candidates_per_particle: f64,
+    /// Of left detections, those matched in the right image.
+    pub matched_fraction: f64,
+    /// Of matched particles, those given a centred velocity.
+    pub velocity_fraction: f64,
+}
+
 impl RunTotals {
-    fn add(&mut self, s: &FrameStats, pipeline_s: f64) {
+    pub fn add(&mut self, s: &FrameStats, pipeline_s: f64) {
         self.frames += 1;
         self.detections_left += s.detections_left;
         self.detections_right += s.detections_right;
@@ -136,14 +150,29 @@ impl RunTotals {
 
     /// What a run settled on, how healthy it was, and in words what its figures say cannot be
     /// trusted; a run that gave no vectors always gets a warning saying why.
-    pub fn health(&self, config: &PipelineConfig) -> RunHealth {
-        let ratio = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+    pub fn figures(&self) -> HealthFigures {
         let detections = self.detections_left + self.detections_right;
-        let detections_per_image = ratio(detections, 2 * self.frames);
-        let linked_fraction = ratio(self.linked_left + self.linked_right, detections);
-        let candidates_per_particle = ratio(self.stereo_candidates, self.left_with_candidates);
-        let matched_fraction = ratio(self.matches, self.detections_left);
-        let vector_fraction = ratio(self.vectors, self.matches);
+        HealthFigures {
+            detections_per_image: ratio(detections, 2 * self.frames),
+            linked_fraction: ratio(self.linked_left + self.linked_right, detections),
+            stereo_candidates_per_particle: ratio(
+                self.stereo_candidates,
+                self.left_with_candidates,
+            ),
+            matched_fraction: ratio(self.matches, self.detections_left),
+            velocity_fraction: ratio(self.vectors, self.matches),
+        }
+    }
+
+    pub fn health(&self, config: &PipelineConfig) -> RunHealth {
+        let detections = self.detections_left + self.detections_right;
+        let HealthFigures {
+            detections_per_image,
+            linked_fraction,
+            stereo_candidates_per_particle: candidates_per_particle,
+            matched_fraction,
+            velocity_fraction: vector_fraction,
+        } = self.figures();
         let box_px = config.link.box_half_side_px;
         let window = 2 * config.velocity.half_window_frames + 1;
         let search = self
@@ -234,6 +263,14 @@ impl RunTotals {
             summary,
             warnings,
         }
+    }
+}
+
+fn ratio(a: usize, b: usize) -> f64 {
+    if b == 0 {
+        0.0
+    } else {
+        a as f64 / b as f64
     }
 }
 

@@ -244,6 +244,20 @@ pub struct Counters {
     /// With `serve --record`: frames written and synced to disk (see `recorded`).
     #[serde(default)]
     pub frames_recorded: u64,
+    /// The session's health so far, as `mrptv process` reports it for a recording: detections
+    /// per image, and the fractions of detections linked to an earlier frame, of left
+    /// detections matched in the right image, of matched particles given a (refined) velocity;
+    /// and the stereo candidates per left particle that had any (far above 1: ambiguous).
+    #[serde(default)]
+    pub detections_per_image: f64,
+    #[serde(default)]
+    pub linked_fraction: f64,
+    #[serde(default)]
+    pub matched_fraction: f64,
+    #[serde(default)]
+    pub velocity_fraction: f64,
+    #[serde(default)]
+    pub stereo_candidates_per_particle: f64,
 }
 
 /// Error codes; the `message` next to them is for people.

@@ -28,6 +28,11 @@ fn counters() -> Counters {
         processing_ms_last: 2.5,
         processing_ms_mean: 1.75,
         frames_recorded: 296,
+        detections_per_image: 28.5,
+        linked_fraction: 0.96875,
+        matched_fraction: 0.9375,
+        velocity_fraction: 0.75,
+        stereo_candidates_per_particle: 1.25,
     }
 }
 

@@ -102,6 +102,16 @@ async fn rust_client_vectors_match_offline_processing_and_the_live_recording() {
     assert!(report.dropped_frames.is_empty());
     let counters = report.counters.expect("final counters in the bye");
     assert_eq!(counters.frames_processed, 60);
+    // The session's health, as `process` reports it: ~20 particles, nearly all linked and
+    // matched, most matched ones given a velocity once the window has filled.
+    assert!(
+        (10.0..=40.0).contains(&counters.detections_per_image)
+            && counters.linked_fraction > 0.8
+            && counters.matched_fraction > 0.8
+            && (0.3..=1.0).contains(&counters.velocity_fraction)
+            && (1.0..2.0).contains(&counters.stereo_candidates_per_particle),
+        "{counters:?}"
+    );
     assert_eq!(report.bye_reason.as_deref(), Some("client said bye"));
     // Every frame got its causal batch, in order, at once; all flagged causal and world.
     assert_eq!(report.latencies_s.len(), 60);

@@ -15,6 +15,7 @@ use tokio::sync::{mpsc, oneshot};
 use super::queue::{DropOldestQueue, Pushed};
 use super::{unix_ms, Hub, HubEvent, PublishedBatch, SessionShared};
 use crate::geometry::StereoRig;
+use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
     Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
@@ -350,6 +351,7 @@ impl Connection {
             recorder,
             queue: Arc::clone(&queue),
             processing_s_total: 0.0,
+            totals: RunTotals::default(),
             rerun,
             frames_processed: 0,
         };
@@ -604,6 +606,8 @@ struct Worker {
     recorder: Option<Recorder>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
     processing_s_total: f64,
+    /// Over the session, for its health figures.
+    totals: RunTotals,
     rerun: Option<RerunLogger>,
     frames_processed: u64,
 }
@@ -703,6 +707,7 @@ impl Worker {
             }
         };
         let processing_s = started.elapsed().as_secs_f64();
+        self.totals.add(&output.stats, processing_s);
         let processing_us = (processing_s * 1e6).min(u32::MAX as f64) as u32;
         let rerun_log = self.rerun.as_ref().map(|logger| {
             let mut log = FrameLog::from_output(&output, frame.world_from_rig);
@@ -757,6 +762,12 @@ impl Worker {
             c.processing_ms_last = processing_s * 1e3;
             c.processing_ms_mean = self.processing_s_total * 1e3 / c.frames_processed as f64;
             c.queue_depth = self.queue.len();
+            let health = self.totals.figures();
+            c.detections_per_image = health.detections_per_image;
+            c.linked_fraction = health.linked_fraction;
+            c.matched_fraction = health.matched_fraction;
+            c.velocity_fraction = health.velocity_fraction;
+            c.stereo_candidates_per_particle = health.stereo_candidates_per_particle;
         }
         tracing::trace!(session = %self.shared.id(), frame = frame.index, vectors = sent,
             processing_ms = processing_s * 1e3, "frame processed");
