@@ -373,9 +373,8 @@ pub struct Rectification {
     /// Half the rectified image extent along x and y (the method's X_image, Y_image).
     pub half_width_px: f64,
     pub half_height_px: f64,
-    /// Where each image's border lands along the rectified x axis, `(min, max)` pixels.
-    left_x_range_px: (f64, f64),
-    right_x_range_px: (f64, f64),
+    /// See [`Self::overlap_disparity_px`].
+    overlap_disparity_px: (f64, f64),
 }
 
 impl Rectification {
@@ -417,11 +416,10 @@ impl Rectification {
             baseline_m,
             half_width_px: 0.0,
             half_height_px: 0.0,
-            left_x_range_px: (0.0, 0.0),
-            right_x_range_px: (0.0, 0.0),
+            overlap_disparity_px: (0.0, 0.0),
         };
-        let left = rect.rectified_border(rig, |p| rect.left_to_rect(p));
-        let right = rect.rectified_border(rig, |p| rect.right_to_rect(p));
+        let left = Self::rectified_border(rig, |p| rect.left_to_rect(p));
+        let right = Self::rectified_border(rig, |p| rect.right_to_rect(p));
         let (Some(left), Some(right)) = (left, right) else {
             return Err(invalid(
                 "K1, D1, K2, D2",
@@ -432,9 +430,9 @@ impl Rectification {
         // extent of the left image's border once rectified.
         rect.half_width_px = (left.max_x - left.min_x) / 2.0;
         rect.half_height_px = (left.max_y - left.min_y) / 2.0;
-        rect.left_x_range_px = (left.min_x, left.max_x);
-        rect.right_x_range_px = (right.min_x, right.max_x);
-        let (min_disparity, max_disparity) = rect.overlap_disparity_px();
+        // From the left image's near edge against the right image's far edge, and back.
+        let (min_disparity, max_disparity) = (left.min_x - right.max_x, left.max_x - right.min_x);
+        rect.overlap_disparity_px = (min_disparity, max_disparity);
         if max_disparity <= min_disparity.max(0.0) {
             return Err(invalid(
                 "R, T",
@@ -446,7 +444,6 @@ impl Rectification {
 
     /// The bounding box of one image's border once rectified; `None` when it cannot be mapped.
     fn rectified_border(
-        &self,
         rig: &StereoRig,
         to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
     ) -> Option<RectBox> {
@@ -472,14 +469,11 @@ impl Rectification {
         (b.min_x < b.max_x && b.min_y < b.max_y).then_some(b)
     }
 
-    /// The disparities `X_L - X_R` a point seen by both cameras can have, `(min, max)` pixels:
-    /// from the left image's near edge against the right image's far edge, and back. The
-    /// minimum is negative when the views overlap out to infinity (a parallel or diverging pair).
+    /// The disparities `X_L - X_R` a point seen by both cameras can have, `(min, max)` pixels.
+    /// The minimum is negative when the views overlap out to infinity (a parallel or diverging
+    /// pair).
     pub fn overlap_disparity_px(&self) -> (f64, f64) {
-        (
-            self.left_x_range_px.0 - self.right_x_range_px.1,
-            self.left_x_range_px.1 - self.right_x_range_px.0,
-        )
+        self.overlap_disparity_px
     }
 
     fn to_rect(

@@ -148,8 +148,15 @@ impl RunTotals {
         self.left_with_candidates += s.left_with_candidates;
     }
 
-    /// What a run settled on, how healthy it was, and in words what its figures say cannot be
-    /// trusted; a run that gave no vectors always gets a warning saying why.
+    /// Empty totals that remember the stereo search `pipeline` settled on.
+    fn for_pipeline(pipeline: &Pipeline) -> Self {
+        Self {
+            stereo_search: Some(*pipeline.stereo_search()),
+            ..Default::default()
+        }
+    }
+
+    /// The run's health figures so far.
     pub fn figures(&self) -> HealthFigures {
         let detections = self.detections_left + self.detections_right;
         HealthFigures {
@@ -164,6 +171,8 @@ impl RunTotals {
         }
     }
 
+    /// What a run settled on, how healthy it was, and in words what its figures say cannot be
+    /// trusted; a run that gave no vectors always gets a warning saying why.
     pub fn health(&self, config: &PipelineConfig) -> RunHealth {
         let detections = self.detections_left + self.detections_right;
         let HealthFigures {
@@ -337,7 +346,6 @@ pub fn process_recording(
     mut progress: impl FnMut(usize),
 ) -> Result<RunTotals, OfflineError> {
     let mut pipeline = Pipeline::new(recording.rig.clone(), config)?;
-    let stereo_search = Some(*pipeline.stereo_search());
     let ProcessSinks {
         tracks: Sink {
             path: tracks_path,
@@ -351,10 +359,7 @@ pub fn process_recording(
     if let Some(p) = points.as_mut() {
         writeln!(p.writer, "{}", tables::POINTS_HEADER).map_err(io_error(p.path))?;
     }
-    let mut totals = RunTotals {
-        stereo_search,
-        ..Default::default()
-    };
+    let mut totals = RunTotals::for_pipeline(&pipeline);
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::sync_channel(2);
         scope.spawn(move || {
@@ -428,15 +433,11 @@ pub fn run_in_memory(
     mut progress: impl FnMut(usize),
 ) -> Result<InMemoryRun, OfflineError> {
     let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
-    let stereo_search = Some(*pipeline.stereo_search());
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut truth = Vec::new();
     let mut tracks = Vec::new();
     let mut causal_tracks = Vec::new();
-    let mut totals = RunTotals {
-        stereo_search,
-        ..Default::default()
-    };
+    let mut totals = RunTotals::for_pipeline(&pipeline);
     for n in 0..frames {
         let f = synth.next_frame();
         let output = push_pixels(

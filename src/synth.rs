@@ -279,13 +279,18 @@ pub struct ScenarioSpec {
     pub config: PipelineConfig,
 }
 
-/// Two identical pinholes, principal point at the image centre, baseline along x.
-pub(crate) fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
-    let camera = CameraModel::pinhole(
+/// A pinhole with its principal point at the image centre.
+fn centred_pinhole(width: u32, height: u32, f_px: f64) -> CameraModel {
+    CameraModel::pinhole(
         f_px,
         (width as f64 - 1.0) / 2.0,
         (height as f64 - 1.0) / 2.0,
-    );
+    )
+}
+
+/// Two identical pinholes, principal point at the image centre, baseline along x.
+pub(crate) fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
+    let camera = centred_pinhole(width, height, f_px);
     StereoRig {
         width,
         height,
@@ -304,11 +309,7 @@ pub fn convergent_rig(
     baseline_m: f64,
     toe_in_rad: f64,
 ) -> StereoRig {
-    let camera = CameraModel::pinhole(
-        f_px,
-        (width as f64 - 1.0) / 2.0,
-        (height as f64 - 1.0) / 2.0,
-    );
+    let camera = centred_pinhole(width, height, f_px);
     // In a frame with x along the baseline: the left camera at the origin looks towards +x, the
     // right one, at +baseline, towards -x.
     let world_from_left = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in_rad);

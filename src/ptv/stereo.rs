@@ -81,7 +81,8 @@ impl Default for StereoConfig {
 /// The hard filter's bounds in the rectified pair, settled once per rig and config.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct StereoSearch {
-    /// A right particle matches only at a disparity `X_L - X_R` in this open interval, pixels.
+    /// A right particle matches only at a disparity `X_L - X_R` in this open interval, pixels;
+    /// the minimum is never negative (a point in front of both cameras).
     pub min_disparity_px: f64,
     pub max_disparity_px: f64,
     /// ... and on a row within this many pixels of the left particle's.
@@ -198,7 +199,6 @@ pub fn match_stereo(
     let passes = |l: &Feature, r: &Feature| {
         let disparity = l.rect.x - r.rect.x;
         disparity > min_disparity
-            && disparity > 0.0
             && disparity < max_disparity
             && (l.rect.y - r.rect.y).abs() <= band
     };
@@ -212,7 +212,7 @@ pub fn match_stereo(
     for (li, l) in left.iter().enumerate() {
         let before = candidates.len();
         let x = l.feature.rect.x;
-        for ri in sorted.within(x - max_disparity, x - min_disparity.max(0.0)) {
+        for ri in sorted.within(x - max_disparity, x - min_disparity) {
             let r = &right[ri];
             if !passes(&l.feature, &r.feature) {
                 continue;

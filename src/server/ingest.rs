@@ -350,7 +350,6 @@ impl Connection {
             events: self.hub.events.clone(),
             recorder,
             queue: Arc::clone(&queue),
-            processing_s_total: 0.0,
             totals: RunTotals::default(),
             rerun,
             frames_processed: 0,
@@ -605,8 +604,7 @@ struct Worker {
     events: tokio::sync::broadcast::Sender<HubEvent>,
     recorder: Option<Recorder>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
-    processing_s_total: f64,
-    /// Over the session, for its health figures.
+    /// Over the session: its health figures and mean processing time.
     totals: RunTotals,
     rerun: Option<RerunLogger>,
     frames_processed: u64,
@@ -754,13 +752,12 @@ impl Worker {
         if let Some(r) = refined {
             let _ = self.events.send(HubEvent::Batch(Arc::new(r)));
         }
-        self.processing_s_total += processing_s;
         {
             let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();
             c.frames_processed += 1;
             c.vectors_sent += sent;
             c.processing_ms_last = processing_s * 1e3;
-            c.processing_ms_mean = self.processing_s_total * 1e3 / c.frames_processed as f64;
+            c.processing_ms_mean = self.totals.pipeline_s * 1e3 / c.frames_processed as f64;
             c.queue_depth = self.queue.len();
             let health = self.totals.figures();
             c.detections_per_image = health.detections_per_image;
