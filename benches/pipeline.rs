@@ -2,8 +2,8 @@
 //! (the HoloLens 2 front cameras' size), for 50, 200 and 1000 particles in view. One thread.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use mrptv::ptv::detect::Detector;
-use mrptv::ptv::{ImageView, Pipeline, StereoFrame};
+use mrptv::ptv::detect::{DetectConfig, Detector};
+use mrptv::ptv::{ImageView, Pipeline, PipelineConfig, StereoFrame};
 use mrptv::synth::{Scenario, ScenarioSpec, Synthesizer};
 
 const FRAMES: usize = 32;
@@ -41,7 +41,7 @@ fn benches(c: &mut Criterion) {
             |b, _| {
                 b.iter(|| {
                     n = (n + 1) % FRAMES;
-                    detector.detect(view(w, h, &images[n].0), &spec.config.detect, &mut out);
+                    detector.detect(view(w, h, &images[n].0), &DetectConfig::default(), &mut out);
                     out.len()
                 })
             },
@@ -55,7 +55,7 @@ fn benches(c: &mut Criterion) {
             &particles,
             |b, _| {
                 let mut pipeline =
-                    Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+                    Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
                 let mut index = 0u64;
                 b.iter(|| {
                     // Replaying the same frames in a loop: one track break per loop, as in a real

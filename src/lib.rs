@@ -7,11 +7,13 @@
 //!   order, each a function or a small state machine with named input and output types:
 //!   - [`ptv::detect`]: image -> [`ptv::Detection`] (centroid, diameter D, brightness B)
 //!   - rectification ([`geometry::Rectification`]): raw pixel -> virtual co-directional pixel
-//!   - [`ptv::link`]: per camera, frame n -> n+1, gives each feature a 2D track id
+//!   - [`ptv::link`]: per camera, frame n -> n+1, gives each feature a 2D track id (a new track's
+//!     first step from agreeing neighbours, or learnt from the images by neighbour consensus)
 //!   - [`ptv::stereo`]: left <-> right matching in the virtual pair
 //!   - triangulation ([`geometry::Rectification::triangulate`]): disparity -> point in the rig
 //!     frame, then `point_in_world = world_from_rig * point_in_rig`
-//!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity
+//!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity (window and order
+//!     chosen per track and component from its residuals, `fit_adaptive`)
 //!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
 //! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
 //! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame

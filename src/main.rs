@@ -21,7 +21,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Write a synthetic recording with ground truth (OUT/truth.csv) and a suggested OUT/mrptv.toml.
+    /// Write a synthetic recording with ground truth (OUT/truth.csv).
     #[command(after_help = format!("Scenarios:\n{}", scenario_help()))]
     Synth(cli::synth::Args),
     /// Process a recording: write velocity vectors (tracks.csv) and optionally every matched particle.

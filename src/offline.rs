@@ -50,7 +50,8 @@ pub struct SynthSummary {
     pub visible_fraction: f64,
 }
 
-/// Writes a synthetic recording plus `truth.csv` and the scenario's suggested `mrptv.toml`.
+/// Writes a synthetic recording plus `truth.csv`. No `mrptv.toml`: a recording is processed with
+/// the defaults, as a real one is.
 pub fn write_synthetic(
     spec: ScenarioSpec,
     out: &Path,
@@ -61,14 +62,6 @@ pub fn write_synthetic(
 ) -> Result<SynthSummary, OfflineError> {
     let with_pose = spec.head.world_from_rig(0.0).is_some();
     let mut writer = RecordingWriter::create(out, &spec.rig, with_pose)?;
-    let config_path = out.join("mrptv.toml");
-    let config_text = format!(
-        "# Processing parameters suggested for the '{}' scenario: {}\n# `mrptv process` reads this file when no --config is given.\n\n{}",
-        spec.scenario.name(),
-        spec.scenario.description(),
-        crate::config::to_toml(&spec.config)
-    );
-    fs::write(&config_path, config_text).map_err(io_error(&config_path))?;
     let truth_path = out.join("truth.csv");
     let mut truth = BufWriter::new(fs::File::create(&truth_path).map_err(io_error(&truth_path))?);
     writeln!(truth, "{}", tables::TRUTH_HEADER).map_err(io_error(&truth_path))?;
@@ -117,6 +110,9 @@ pub struct RunTotals {
     pub linked_right: usize,
     pub stereo_candidates: usize,
     pub left_with_candidates: usize,
+    pub fit_components_narrower: usize,
+    pub fit_components_cubic: usize,
+    pub fixtures: usize,
 }
 
 /// A run's health figures (see [`RunTotals::health`]).
@@ -146,6 +142,9 @@ impl RunTotals {
         self.linked_right += s.linked_right;
         self.stereo_candidates += s.stereo_candidates;
         self.left_with_candidates += s.left_with_candidates;
+        self.fit_components_narrower += s.fit_components_narrower;
+        self.fit_components_cubic += s.fit_components_cubic;
+        self.fixtures += s.fixtures;
     }
 
     /// Empty totals that remember the stereo search `pipeline` settled on.
@@ -183,22 +182,65 @@ impl RunTotals {
             velocity_fraction: vector_fraction,
         } = self.figures();
         let box_px = config.link.box_half_side_px;
-        let window = 2 * config.velocity.half_window_frames + 1;
+        let velocity = &config.velocity;
+        let window = 2 * velocity.half_window_frames + 1;
+        // A fast particle may have its velocity from as few as five frames.
+        let shortest_window = if velocity.min_window_travel_px > 0.0 {
+            window.min(5)
+        } else {
+            window
+        };
         let search = self
             .stereo_search
             .map_or_else(|| "not set up".to_string(), |s| s.to_string());
+        let first_steps =
+            if config.link.predict_new_from_neighbours && config.link.max_displacement_px > 0.0 {
+                format!(
+                    " (a new track's first step learnt from the images, up to {} px)",
+                    config.link.max_displacement_px
+                )
+            } else {
+                String::new()
+            };
+        let windows = if shortest_window < window {
+            format!(
+                "{shortest_window} to {window} frames (narrower where a particle crosses {} px \
+                 within it)",
+                velocity.min_window_travel_px
+            )
+        } else {
+            format!("{window} frames")
+        };
+        let components = 3 * self.vectors;
+        let fits = if velocity.adaptive_fit && components > 0 {
+            format!(
+                ", fit per component: {:.0} % quadratic on the full window, {:.0} % on a \
+                 narrower one, {:.0} % cubic",
+                100.0
+                    * ratio(
+                        components - self.fit_components_narrower - self.fit_components_cubic,
+                        components
+                    ),
+                100.0 * ratio(self.fit_components_narrower, components),
+                100.0 * ratio(self.fit_components_cubic, components)
+            )
+        } else {
+            String::new()
+        };
         let settled = format!(
-            "stereo search {search}; linking box +-{box_px} px; velocity window {window} frames; \
-             threshold {} grey levels above the local mean",
+            "stereo search {search}; linking box +-{box_px} px{first_steps}; velocity window \
+             {windows}{fits}; threshold {} grey levels above the local mean",
             -config.detect.contrast_c
         );
         let summary = format!(
             "{detections_per_image:.1} detections/image, {:.0} % linked to an earlier frame, \
              {candidates_per_particle:.2} stereo candidates per matchable particle, {:.0} % of \
-             left detections matched, {:.0} % of matched particles given a velocity",
+             left detections matched, {:.0} % of matched particles given a velocity, {:.1} \
+             fixtures/image (static spots left out)",
             100.0 * linked_fraction,
             100.0 * matched_fraction,
-            100.0 * vector_fraction
+            100.0 * vector_fraction,
+            ratio(self.fixtures, 2 * self.frames)
         );
         let mut warnings = Vec::new();
         if self.vectors == 0 {
@@ -217,16 +259,16 @@ impl RunTotals {
                      none matched between the cameras, so none lay in the stereo search: {search}; \
                      check rig.json, or give the measurement volume with --depth-range"
                 )
-            } else if self.frames < window {
+            } else if self.frames < shortest_window {
                 format!(
                     "no vectors: the recording has {} frames, and a centred velocity needs a \
-                     particle seen through {window} (velocity.half_window_frames = {})",
+                     particle seen through {shortest_window} (velocity.half_window_frames = {})",
                     self.frames, config.velocity.half_window_frames
                 )
             } else {
                 format!(
                     "no vectors: {} particles were matched between the cameras, but none was \
-                     followed through the {window} frames a centred velocity needs ({:.0} % of \
+                     followed through the {windows} a centred velocity needs ({:.0} % of \
                      detections linked to an earlier frame): particles may move more than the \
                      linking box (+-{box_px} px) per frame",
                     self.matches,
@@ -247,7 +289,7 @@ impl RunTotals {
             if vector_fraction < 0.2 * possible && linked_fraction >= 0.5 {
                 warnings.push(format!(
                     "only {:.1} % of the particles matched in both cameras were given a velocity: \
-                     tracks break before the {window} frames a centred velocity needs; particles \
+                     tracks break before the {windows} a centred velocity needs; particles \
                      may move more than the linking box (+-{box_px} px) per frame",
                     100.0 * vector_fraction
                 ));
@@ -516,10 +558,10 @@ mod tests {
         };
         assert!(why(unmatched).contains("none matched between the cameras"));
         let short = RunTotals {
-            frames: 8,
+            frames: 4,
             ..none(healthy())
         };
-        assert!(why(short).contains("has 8 frames"));
+        assert!(why(short).contains("has 4 frames"));
         let broken = RunTotals {
             linked_left: 300,
             linked_right: 300,

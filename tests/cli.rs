@@ -136,7 +136,7 @@ fn bad_inputs_get_clear_errors() {
         let to = dir.path().join(name);
         fs::create_dir_all(to.join("left")).expect("mkdir");
         fs::create_dir_all(to.join("right")).expect("mkdir");
-        for f in ["rig.json", "frames.csv", "mrptv.toml"] {
+        for f in ["rig.json", "frames.csv"] {
             fs::copy(rec.join(f), to.join(f)).expect("copy");
         }
         for side in ["left", "right"] {
@@ -474,11 +474,11 @@ fn a_run_without_vectors_says_why() {
             && stderr.contains("--depth-range"),
         "{stderr}"
     );
-    let short = synth(dir.path(), "flume", "6");
+    let short = synth(dir.path(), "flume", "4");
     let stderr = process(&short, None);
     assert!(
-        stderr.contains("warning: no vectors: the recording has 6 frames")
-            && stderr.contains("seen through 11"),
+        stderr.contains("warning: no vectors: the recording has 4 frames")
+            && stderr.contains("seen through 5"),
         "{stderr}"
     );
 }

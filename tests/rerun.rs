@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use mrptv::client::{self, Rate, RecordingSource, ReplayOptions};
 use mrptv::offline;
+use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
@@ -109,10 +110,7 @@ fn process_writes_an_rrd_that_rerun_reads_with_every_entity() {
     assert_rrd_verified(&rrd);
     let entities = rows_per_entity(&rrd);
     println!("{entities:#?}");
-    let m = ScenarioSpec::new(Scenario::Flume)
-        .config
-        .velocity
-        .half_window_frames as u64;
+    let m = PipelineConfig::default().velocity.half_window_frames as u64;
     let n = frames as u64;
     for (entity, expected) in [
         // Static: calibration, axes, legend, plot styles.
@@ -202,7 +200,7 @@ async fn serve_logs_each_session_to_its_own_rrd() {
     ));
     let options = ReplayOptions {
         rate: Rate::Max,
-        config: Some(ScenarioSpec::new(Scenario::Flume).config),
+        config: Some(PipelineConfig::default()),
         ..ReplayOptions::new(format!("ws://{addr}/v1/ingest"))
     };
     for _ in 0..2 {
@@ -260,7 +258,7 @@ fn process_logged(
     let mut file = std::fs::File::create(out).expect("create");
     offline::process_recording(
         rec,
-        ScenarioSpec::new(Scenario::Flume).config,
+        PipelineConfig::default(),
         offline::ProcessSinks {
             tracks: offline::Sink {
                 path: out,

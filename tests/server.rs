@@ -712,3 +712,42 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
     let report = streaming.await.expect("replay");
     assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
 }
+
+/// A headset with no config, streaming flow too fast for the published linking box (45-75 px
+/// per frame): the session learns the particles' steps from the images and gives centred vectors
+/// within its first second of frames (30 frames at 30 Hz, the centred window's latency included).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_on_fast_flow_gives_vectors_within_its_first_second() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Fast, 30);
+    let server = TestServer::start(ServerOptions::default()).await;
+    let options = ReplayOptions {
+        config: None,
+        ..replay_options(server.ingest(), &PipelineConfig::default())
+    };
+    let report = replay(&rec, &options).await;
+    server.stop().await;
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert_eq!(report.frames_sent, 30);
+    let m = PipelineConfig::default().velocity.half_window_frames as u64;
+    let centred: usize = report
+        .refined
+        .iter()
+        .filter(|b| b.frame_index + m < 30)
+        .map(|b| b.vectors.len())
+        .sum();
+    let first = report
+        .refined
+        .iter()
+        .find(|b| !b.vectors.is_empty())
+        .map(|b| b.frame_index);
+    println!("centred vectors for the first second: {centred}, first at frame {first:?}");
+    assert!(
+        centred >= 100,
+        "only {centred} centred vectors in the first second"
+    );
+    assert!(
+        first.is_some_and(|f| f <= 5),
+        "first centred vector at {first:?}"
+    );
+}

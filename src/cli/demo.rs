@@ -4,10 +4,11 @@ use anyhow::{bail, Result};
 
 use mrptv::eval::EvalOptions;
 use mrptv::offline;
+use mrptv::ptv::PipelineConfig;
 use mrptv::synth::{Scenario, ScenarioSpec};
 
 use super::args::DepthRange;
-use super::{method_config, progress_bar};
+use super::progress_bar;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -41,9 +42,9 @@ pub fn run(args: Args) -> Result<()> {
     let frames = frames.unwrap_or(spec.default_frames);
     let particles = particles.unwrap_or(spec.default_particles);
     let mut config = if method {
-        method_config(&spec.config)
+        PipelineConfig::method()
     } else {
-        spec.config.clone()
+        PipelineConfig::default()
     };
     DepthRange::apply(depth_range, &mut config);
     if frames == 0 {

@@ -26,9 +26,14 @@ use mrptv::synth::Scenario;
 
 /// The scenario list shown below `synth --help` and `demo --help`.
 pub fn scenario_help() -> String {
+    let width = Scenario::ALL
+        .iter()
+        .map(|s| s.name().len())
+        .max()
+        .unwrap_or(0);
     Scenario::ALL
         .iter()
-        .map(|s| format!("  {:<13} {}", s.name(), s.description()))
+        .map(|s| format!("  {:<width$} {}", s.name(), s.description()))
         .collect::<Vec<_>>()
         .join("\n")
 }

@@ -146,7 +146,8 @@ async fn serve(
         );
         let options = ReplayOptions {
             client_name: format!("mrptv demo ({scenario})"),
-            config: Some(spec.config.clone()),
+            // No config in hello: the session runs on the server's, as a headset's does.
+            config: None,
             keep_batches: false,
             tls: demo_tls,
             secret: secrets.ingest,

@@ -9,7 +9,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::detect::{DetectConfig, Detection, Detector};
-use super::kinematics::{fit_line, fit_quadratic};
+use super::kinematics::{fit_adaptive, fit_line, fit_quadratic, quadratic_residuals, FitChoice};
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use super::stereo::{match_stereo, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
@@ -34,6 +34,16 @@ pub struct VelocityConfig {
     pub disparity_sigma_px: f64,
     /// Residual always allowed, metres (covers real accelerations over the window).
     pub residual_floor_m: f64,
+    /// Choose each vector's fit from its track (see `kinematics::fit_adaptive`): per component a
+    /// quadratic over a window of 2..=M frames each side, or a cubic over the widest, whichever
+    /// the track's own residuals predict to be most accurate. Off: the method's quadratic over
+    /// +-M.
+    pub adaptive_fit: bool,
+    /// A window narrower than +-M is allowed (down to +-2) when the particle crosses at least
+    /// this many pixels within it: precision then comes from the distance travelled, not the
+    /// frame count, and a fast particle that is in view for only a few frames still gets
+    /// vectors. 0: always +-M (with `max_missing_per_side`).
+    pub min_window_travel_px: f64,
 }
 
 impl Default for VelocityConfig {
@@ -44,6 +54,8 @@ impl Default for VelocityConfig {
             max_residual_ratio: 4.0,
             disparity_sigma_px: 0.1,
             residual_floor_m: 0.001,
+            adaptive_fit: true,
+            min_window_travel_px: 60.0,
         }
     }
 }
@@ -78,6 +90,10 @@ impl PipelineConfig {
         c.stereo.disparity_range_fraction = Some(0.25);
         c.stereo.epipolar_band_fraction = Some(0.01);
         c.velocity.max_residual_ratio = 0.0;
+        c.velocity.adaptive_fit = false;
+        c.velocity.min_window_travel_px = 0.0;
+        c.link.max_displacement_px = 0.0;
+        c.link.fixture_frames = 0;
         c
     }
 
@@ -112,6 +128,11 @@ impl PipelineConfig {
                 self.velocity.disparity_sigma_px,
             ),
             ("velocity.residual_floor_m", self.velocity.residual_floor_m),
+            (
+                "velocity.min_window_travel_px",
+                self.velocity.min_window_travel_px,
+            ),
+            ("link.max_displacement_px", self.link.max_displacement_px),
         ];
         for (field, v) in finite_non_negative {
             if !v.is_finite() || v < 0.0 {
@@ -230,6 +251,12 @@ pub struct FrameStats {
     /// Stereo pairs that passed the hard filter, and left features with at least one.
     pub stereo_candidates: usize,
     pub left_with_candidates: usize,
+    /// Velocity components (three per vector) whose fit the data chose over the method's
+    /// quadratic on +-M: a quadratic on a narrower window, or a cubic.
+    pub fit_components_narrower: usize,
+    pub fit_components_cubic: usize,
+    /// Detections (both cameras) taken for fixtures of the room or sensor and not matched.
+    pub fixtures: usize,
 }
 
 /// A frame as the pipeline saw it: its index, sensor time, and whether it came with a pose
@@ -274,6 +301,10 @@ struct Sample {
     depth_m: f64,
     /// Neither camera's centroid was cut out of overlapping particles: fit for measuring.
     clean: bool,
+    /// Where the left camera saw it, rectified: how far the particle moves in the image.
+    left_rect: crate::geometry::RectPoint,
+    /// The left camera's centre when it did: the line of sight, along which noise is largest.
+    camera_in_world: Point3<f64>,
 }
 
 #[derive(Debug, Clone)]
@@ -295,6 +326,8 @@ pub struct Pipeline {
     pair_history: PairHistory,
     /// Live 3D tracks keyed by their left track id.
     tracks: BTreeMap<u64, Track3d>,
+    /// Ended tracks whose last samples may still be the centre of a vector.
+    retired: Vec<Track3d>,
     next_track_id: u64,
     previous_t_s: Option<f64>,
     /// Frames pushed so far.
@@ -320,6 +353,7 @@ impl Pipeline {
             stereo_search,
             pair_history: PairHistory::new(),
             tracks: BTreeMap::new(),
+            retired: Vec::new(),
             next_track_id: 0,
             previous_t_s: None,
             seq: 0,
@@ -412,21 +446,40 @@ impl Pipeline {
         let right = self
             .right_linker
             .push(&right_features, scale, &self.config.link);
+        // Fixtures (features that have not moved for a while) never enter stereo matching: a
+        // static light in the room would otherwise become a 3D point with a velocity of zero.
+        let moving = |features: &[LinkedFeature]| -> (Vec<LinkedFeature>, Vec<usize>) {
+            features
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| !f.fixed)
+                .map(|(i, f)| (*f, i))
+                .unzip()
+        };
+        let (moving_left, left_index) = moving(&left);
+        let (moving_right, right_index) = moving(&right);
+        out.stats.fixtures = (left.len() - moving_left.len()) + (right.len() - moving_right.len());
         let stereo = match_stereo(
-            &left,
-            &right,
+            &moving_left,
+            &moving_right,
             scale,
             &self.stereo_search,
             &mut self.pair_history,
             &self.config.stereo,
         );
-        let pairs = stereo.pairs;
+        let pairs: Vec<(usize, usize)> = stereo
+            .pairs
+            .iter()
+            .map(|&(l, r)| (left_index[l], right_index[r]))
+            .collect();
         out.stats.stereo_candidates = stereo.candidates;
         out.stats.left_with_candidates = stereo.left_with_candidates;
         out.stats.linked_left = left.iter().filter(|f| f.age > 1).count();
         out.stats.linked_right = right.iter().filter(|f| f.age > 1).count();
 
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
+        let max_gap = u64::from(self.config.link.max_gap_frames);
+        let m = m as u64;
         let mut tracks = BTreeMap::new();
         for &(li, ri) in &pairs {
             let (l, r): (&LinkedFeature, &LinkedFeature) = (&left[li], &right[ri]);
@@ -440,6 +493,8 @@ impl Pipeline {
                 point_in_world: world_from_rig * t.point_in_rig,
                 depth_m: t.depth_m,
                 clean: !(left_raw[li].from_overlap || right_raw[ri].from_overlap),
+                left_rect: l.feature.rect,
+                camera_in_world: world_from_rig * Point3::origin(),
             };
             let mut track = match self.tracks.remove(&l.track_id) {
                 // Without track-consistent pairing (the method) a left track keeps its 3D track
@@ -467,25 +522,39 @@ impl Pipeline {
                 depth_m: t.depth_m,
             });
             track.samples.push_back(sample);
-            let oldest = seq.saturating_sub(2 * self.config.velocity.half_window_frames as u64);
+            let oldest = seq.saturating_sub(2 * m);
             while track.samples.front().is_some_and(|s| s.seq < oldest) {
                 track.samples.pop_front();
             }
             tracks.insert(l.track_id, track);
         }
-        // A 3D track unseen this frame survives a gap as long as its left track may coast.
-        let max_gap = u64::from(self.config.link.max_gap_frames);
+        // A 3D track unseen this frame survives a gap as long as its left track may coast; after
+        // that it is retired, and kept M frames for the centred vectors its last samples still
+        // give (with a window narrower than M near a track's end).
         for (left_track, track) in std::mem::take(&mut self.tracks) {
-            let last_seq = track.samples.back().map_or(0, |s| s.seq);
-            if !tracks.contains_key(&left_track) && seq - last_seq <= max_gap {
+            if tracks.contains_key(&left_track) {
+                continue;
+            }
+            if seq - Self::last_seq(&track) <= max_gap {
                 tracks.insert(left_track, track);
+            } else {
+                self.retired.push(track);
             }
         }
         self.tracks = tracks;
-
-        for track in self.tracks.values() {
+        self.retired.retain(|t| seq - Self::last_seq(t) <= m);
+        for track in self.tracks.values().chain(&self.retired) {
             match self.centred_vector(track, seq) {
-                Some(Ok(v)) => out.vectors.push(v),
+                Some(Ok((v, choice))) => {
+                    out.vectors.push(v);
+                    for c in choice.iter().flatten() {
+                        if c.order > 2 {
+                            out.stats.fit_components_cubic += 1;
+                        } else if usize::from(c.half_window_frames) < m as usize {
+                            out.stats.fit_components_narrower += 1;
+                        }
+                    }
+                }
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
             }
@@ -493,7 +562,7 @@ impl Pipeline {
                 out.causal_vectors.push(v);
             }
         }
-        out.centred_frame = (self.recent_frames.len() == m + 1)
+        out.centred_frame = (self.recent_frames.len() == m as usize + 1)
             .then(|| self.recent_frames.front().copied())
             .flatten();
         out.stats.detections_left = out.detections_left.len();
@@ -516,6 +585,43 @@ impl Pipeline {
                     .depth_sigma_m(depth_m, v.disparity_sigma_px)
                 + v.residual_floor_m
         })
+    }
+
+    /// Whether a centred window strays from its quadratic more than noise explains, judged
+    /// along the line of sight (depth noise, large) and across it (centroid noise, small)
+    /// separately: a track that swapped to a neighbouring particle jumps sideways by a few
+    /// pixels, which a single limit set by the depth noise would let through.
+    fn is_rough(&self, window: &[&Sample], t_eval_s: f64, depth_m: f64) -> bool {
+        let v = &self.config.velocity;
+        if v.max_residual_ratio <= 0.0 {
+            return false;
+        }
+        let points: Vec<(f64, Point3<f64>)> =
+            window.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+        let Some(residuals) = quadratic_residuals(&points, t_eval_s) else {
+            return false;
+        };
+        let (mut along_sq, mut across_sq) = (0.0, 0.0);
+        for (s, r) in window.iter().zip(&residuals) {
+            let sight = (s.point_in_world - s.camera_in_world)
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::z);
+            let along = r.dot(&sight);
+            along_sq += along * along;
+            across_sq += (r.norm_squared() - along * along).max(0.0);
+        }
+        let n = window.len() as f64;
+        let along_limit = v.max_residual_ratio
+            * self
+                .rectification
+                .depth_sigma_m(depth_m, v.disparity_sigma_px)
+            + v.residual_floor_m;
+        // Two directions across the line of sight, each with the centroid noise.
+        let across_limit =
+            v.max_residual_ratio * std::f64::consts::SQRT_2 * depth_m * v.disparity_sigma_px
+                / self.rectification.focal_px
+                + v.residual_floor_m;
+        (along_sq / n).sqrt() > along_limit || (across_sq / n).sqrt() > across_limit
     }
 
     /// The causal estimate for the newest frame: a straight line through the track's clean
@@ -554,44 +660,109 @@ impl Pipeline {
         })
     }
 
+    fn last_seq(track: &Track3d) -> u64 {
+        track.samples.back().map_or(0, |s| s.seq)
+    }
+
     /// The centred estimate for the frame `M` frames back, if the track's window supports one;
-    /// `Err` if rejected as rough. The centre frame must be seen, and each side may miss at most
-    /// `max_missing_per_side` frames (to a gap, or to the track's start or end).
-    fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<VelocityVector, ()>> {
-        let m = self.config.velocity.half_window_frames as u64;
+    /// `Err` if rejected as rough. The centre frame must be seen, and each side of a window of
+    /// `+-w` frames may miss at most `max_missing_per_side` frames (to a gap, or to the track's
+    /// start or end; a narrower window may miss none). `w` is M, or narrower down to 2 where the particle crosses
+    /// `min_window_travel_px` within it; with `adaptive_fit` the fit is chosen per component
+    /// among the windows the track supports (returned with the vector).
+    #[allow(clippy::type_complexity)] // one private helper's Option<Result<(vector, choice)>>
+    fn centred_vector(
+        &self,
+        track: &Track3d,
+        seq: u64,
+    ) -> Option<Result<(VelocityVector, Option<[FitChoice; 3]>), ()>> {
+        let velocity = &self.config.velocity;
+        let m = velocity.half_window_frames as u64;
         let centre_seq = seq.checked_sub(m)?;
         // Samples cut out of overlapping particles keep the track's identity but do not enter the
         // fit: their centroids are biased. The fit needs no sample at the centre itself, so a
         // particle hidden in an overlap at the centre frame still gets a vector from its
         // neighbours in time.
-        // Only the +-M window: older samples linger when the track missed the newest frame.
-        let in_window = |s: &&Sample| s.seq.abs_diff(centre_seq) <= m;
-        let clean = || track.samples.iter().filter(in_window).filter(|s| s.clean);
         let centre = track.samples.iter().find(|s| s.seq == centre_seq)?;
-        let before = clean().filter(|s| s.seq < centre_seq).count() as u64;
-        let after = clean().filter(|s| s.seq > centre_seq).count() as u64;
-        let needed = m
-            .saturating_sub(self.config.velocity.max_missing_per_side as u64)
-            .max(1);
-        if before < needed || after < needed {
-            return None;
+        let clean_within = |w: u64| {
+            track
+                .samples
+                .iter()
+                .filter(move |s| s.clean && s.seq.abs_diff(centre_seq) <= w)
+        };
+        let narrowest = self.narrowest_window(clean_within(m), m);
+        // Candidate windows, narrowest first; a window whose samples stray from a smooth path
+        // (a swapped particle, a wrong stereo pair) is left out, and narrower ones that end
+        // before the stray sample may still serve.
+        let mut windows = Vec::new();
+        let mut any_supported = false;
+        for w in narrowest..=m {
+            let before = clean_within(w).filter(|s| s.seq < centre_seq).count() as u64;
+            let after = clean_within(w).filter(|s| s.seq > centre_seq).count() as u64;
+            // A narrowed window is complete: it has few samples to spare, and a quadratic through
+            // three or four of them says nothing about the track's smoothness.
+            let needed = if w < m {
+                w
+            } else {
+                w.saturating_sub(velocity.max_missing_per_side as u64)
+                    .max(1)
+            };
+            if before < needed || after < needed {
+                continue;
+            }
+            any_supported = true;
+            let samples: Vec<&Sample> = clean_within(w).collect();
+            if self.is_rough(&samples, centre.t_s, centre.depth_m) {
+                continue;
+            }
+            let points: Vec<(f64, Point3<f64>)> =
+                samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+            windows.push((w as usize, points));
         }
-        let points: Vec<(f64, Point3<f64>)> = clean().map(|s| (s.t_s, s.point_in_world)).collect();
-        let fit = fit_quadratic(&points, centre.t_s)?;
-        if self
-            .max_residual_m(centre.depth_m)
-            .is_some_and(|max| fit.rms_residual > max)
-        {
-            return Some(Err(()));
+        if windows.is_empty() {
+            return any_supported.then_some(Err(()));
         }
-        Some(Ok(VelocityVector {
-            frame_index: centre.frame_index,
-            t_s: centre.t_s,
-            track_id: track.id,
-            position_in_world: fit.position,
-            velocity_in_world: fit.velocity,
-            rms_residual_m: fit.rms_residual,
-        }))
+        let (fit, choice) = if velocity.adaptive_fit {
+            let adaptive = fit_adaptive(&windows, centre.t_s)?;
+            (adaptive.fit, Some(adaptive.choice))
+        } else {
+            (fit_quadratic(&windows.last()?.1, centre.t_s)?, None)
+        };
+        Some(Ok((
+            VelocityVector {
+                frame_index: centre.frame_index,
+                t_s: centre.t_s,
+                track_id: track.id,
+                position_in_world: fit.position,
+                velocity_in_world: fit.velocity,
+                rms_residual_m: fit.rms_residual,
+            },
+            choice,
+        )))
+    }
+
+    /// The narrowest half-window (2..=m) a track's samples may be fitted over: the particle must
+    /// cross `min_window_travel_px` within it, judged from its mean image speed over `samples`.
+    fn narrowest_window<'a>(&self, samples: impl Iterator<Item = &'a Sample>, m: u64) -> u64 {
+        let travel_px = self.config.velocity.min_window_travel_px;
+        let mut samples = samples;
+        let Some(first) = samples.next() else {
+            return m;
+        };
+        let Some(last) = samples.last() else {
+            return m;
+        };
+        if travel_px <= 0.0 || last.seq == first.seq {
+            return m;
+        }
+        let (a, b) = (first.left_rect, last.left_rect);
+        let speed_px = (b.x - a.x).hypot(b.y - a.y) / (last.seq - first.seq) as f64;
+        let frames_each_side = (travel_px / (2.0 * speed_px)).ceil();
+        if frames_each_side.is_finite() {
+            (frames_each_side as u64).clamp(2.min(m), m)
+        } else {
+            m
+        }
     }
 }
 
@@ -647,7 +818,8 @@ mod tests {
         let mut synth = Synthesizer::new(spec.clone(), 20, 1);
         let frames: Vec<_> = (0..14).map(|_| synth.next_frame()).collect();
         let run = |with_faults: bool| {
-            let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
+            let mut pipeline =
+                Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
             let mut vectors = Vec::new();
             for f in &frames {
                 if with_faults {
@@ -707,8 +879,9 @@ mod tests {
         let spec = ScenarioSpec::new(Scenario::Flume);
         let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
         let mut synth = Synthesizer::new(spec.clone(), 10, 2);
-        let mut pipeline = Pipeline::new(spec.rig.clone(), spec.config.clone()).expect("valid");
-        let m = spec.config.velocity.half_window_frames as u64;
+        let mut pipeline =
+            Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
+        let m = PipelineConfig::default().velocity.half_window_frames as u64;
         for _ in 0..20 {
             let f = synth.next_frame();
             let out = pipeline

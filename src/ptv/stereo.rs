@@ -278,6 +278,7 @@ mod tests {
             track_id,
             motion_px: None,
             age: 1,
+            fixed: false,
         }
     }
 

@@ -63,10 +63,10 @@ impl TestServer {
     }
 }
 
-/// A synthetic recording with its scenario's suggested config (also in REC/mrptv.toml).
+/// A synthetic recording and the config it is processed with (the defaults: `synth` writes none).
 pub fn synth(dir: &Path, scenario: Scenario, frames: usize) -> (Recording, PipelineConfig) {
     let spec = ScenarioSpec::new(scenario);
-    let config = spec.config.clone();
+    let config = PipelineConfig::default();
     let particles = spec.default_particles;
     offline::write_synthetic(spec, dir, frames, particles, 3, |_| {}).expect("synth");
     (Recording::open(dir).expect("recording"), config)
