@@ -113,6 +113,7 @@ pub struct RunTotals {
     pub fit_components_narrower: usize,
     pub fit_components_cubic: usize,
     pub fixtures: usize,
+    pub noisy_images: usize,
 }
 
 /// A run's health figures (see [`RunTotals::health`]).
@@ -145,6 +146,7 @@ impl RunTotals {
         self.fit_components_narrower += s.fit_components_narrower;
         self.fit_components_cubic += s.fit_components_cubic;
         self.fixtures += s.fixtures;
+        self.noisy_images += s.noisy_images;
     }
 
     /// Empty totals that remember the stereo search `pipeline` settled on.
@@ -227,9 +229,17 @@ impl RunTotals {
         } else {
             String::new()
         };
+        let noisy = if self.noisy_images > 0 {
+            format!(
+                " (raised for sensor noise in {:.0} % of images)",
+                100.0 * ratio(self.noisy_images, 2 * self.frames)
+            )
+        } else {
+            String::new()
+        };
         let settled = format!(
             "stereo search {search}; linking box +-{box_px} px{first_steps}; velocity window \
-             {windows}{fits}; threshold {} grey levels above the local mean",
+             {windows}{fits}; threshold {} grey levels above the local mean{noisy}",
             -config.detect.contrast_c
         );
         let summary = format!(

@@ -110,3 +110,41 @@ fn gaussian_motion_blurred_particles_keep_sub_tenth_pixel_centroids() {
     assert!(rms <= 0.1, "rms centroid error {rms:.4} px");
     assert!(found >= 0.98, "found {found:.3}");
 }
+
+/// A dark room at high gain: sensor noise of 10 grey levels. The fixed contrast C = -6 passes
+/// noise as particles; the threshold measured from each image's noise does not, and still finds
+/// the particles.
+#[test]
+fn the_threshold_follows_each_images_noise() {
+    let mut spec = ScenarioSpec::new(Scenario::Flume);
+    spec.noise_sd = 10.0;
+    let rig = spec.rig.clone();
+    let (w, h) = (rig.width as usize, rig.height as usize);
+    let count = |config: &DetectConfig| {
+        let mut synth = Synthesizer::new(spec.clone(), 30, 2);
+        let mut detector = Detector::new();
+        let (mut found, mut visible, mut c) = (Vec::new(), 0, 0.0);
+        let mut detections = 0;
+        for _ in 0..10 {
+            let f = synth.next_frame();
+            detector.detect(
+                ImageView::new(w, h, &f.left).expect("sized"),
+                config,
+                &mut found,
+            );
+            detections += found.len();
+            visible += f.visible_in_both;
+            c = detector.last_contrast_c();
+        }
+        (detections as f64 / visible as f64, c)
+    };
+    let (adaptive, c) = count(&DetectConfig::default());
+    let (fixed, _) = count(&DetectConfig {
+        noise_sigmas: 0.0,
+        ..DetectConfig::default()
+    });
+    println!("detections per visible particle: {adaptive:.2} (C = {c:.1}), fixed C: {fixed:.2}");
+    assert!((0.8..=1.3).contains(&adaptive), "{adaptive}");
+    assert!(fixed > 2.0, "{fixed}");
+    assert!(c < -10.0, "{c}");
+}

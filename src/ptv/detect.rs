@@ -36,6 +36,11 @@ pub struct DetectConfig {
     /// (method eq. 1). Bright particles on a darker background need C < 0; the method leaves the
     /// value to the user, -6 keeps sensor noise of a few grey levels out.
     pub contrast_c: f64,
+    /// Raise the threshold in noisy images: a pixel must exceed its local mean by at least this
+    /// many standard deviations of the blurred image's noise, measured in each image (robustly,
+    /// from neighbouring pixels' differences), when that is more than -C. 0: C alone (the
+    /// method).
+    pub noise_sigmas: f64,
     /// Regions smaller than this many pixels are noise, not particles.
     pub min_area_px: usize,
     /// Regions larger than this are reflections or background structure, not particles.
@@ -62,6 +67,7 @@ impl Default for DetectConfig {
         Self {
             box_size_px: 15,
             contrast_c: -6.0,
+            noise_sigmas: 5.0,
             min_area_px: 3,
             max_area_px: 5000,
             centroid_weight: CentroidWeight::Intensity,
@@ -71,6 +77,38 @@ impl Default for DetectConfig {
             split_dip_fraction: 0.25,
         }
     }
+}
+
+/// `contrast_c`, lowered (made stricter) where the image's noise would pass it: the noise is
+/// estimated from the differences of horizontally adjacent pixels on every fourth row (their
+/// median absolute value, robust to the few pixels on particles), and the 5x5 binomial blur
+/// keeps 0.273 of it.
+fn effective_contrast(config: &DetectConfig, image: ImageView<'_>) -> f64 {
+    if config.noise_sigmas <= 0.0 || image.width < 2 {
+        return config.contrast_c;
+    }
+    let mut histogram = [0usize; 256];
+    let mut n = 0usize;
+    for row in image.pixels.chunks_exact(image.width).step_by(4) {
+        for pair in row.windows(2) {
+            histogram[pair[0].abs_diff(pair[1]) as usize] += 1;
+            n += 1;
+        }
+    }
+    let mut seen = 0;
+    let median = histogram
+        .iter()
+        .position(|&count| {
+            seen += count;
+            2 * seen > n
+        })
+        .unwrap_or(0) as f64;
+    // A difference of two pixels has sqrt(2) times their noise; MAD to sigma is 1.4826.
+    let sigma = 1.4826 * median / std::f64::consts::SQRT_2;
+    const BLUR_NOISE_GAIN: f64 = 0.273;
+    config
+        .contrast_c
+        .min(-config.noise_sigmas * BLUR_NOISE_GAIN * sigma)
 }
 
 /// One detected particle image.
@@ -115,6 +153,8 @@ pub struct Detector {
     next_label: u32,
     stack: Vec<Pixel>,
     region: Vec<Pixel>,
+    /// The contrast constant in use for the current image.
+    contrast_c: f64,
 }
 
 impl Detector {
@@ -135,8 +175,15 @@ impl Detector {
             return;
         }
         self.blur(image);
+        self.contrast_c = effective_contrast(config, image);
         self.threshold(w, h, config);
         self.label(image, config, out);
+    }
+
+    /// The contrast constant the last image was thresholded with: `contrast_c`, or lower where
+    /// the image's noise called for it (`noise_sigmas`).
+    pub fn last_contrast_c(&self) -> f64 {
+        self.contrast_c
     }
 
     /// The 5x5 binomial blur, separable, through a ring of five row-pass rows so the
@@ -229,8 +276,8 @@ impl Detector {
         let half = config.box_size_px.max(1) / 2;
         let area = ((2 * half + 1) * (2 * half + 1)) as i64;
         // blurred >= sum/area - C  <=>  blurred * area + C * area * 256 >= sum (all scaled by 256)
-        let offset = (config.contrast_c * area as f64 * 256.0).round() as i64;
-        let c_scaled = (config.contrast_c * 256.0).round() as i64;
+        let offset = (self.contrast_c * area as f64 * 256.0).round() as i64;
+        let c_scaled = (self.contrast_c * 256.0).round() as i64;
         self.mask.clear();
         self.mask.resize(w * h, 0);
         let (tiles_x, tiles_y) = (w.div_ceil(TILE), h.div_ceil(TILE));

@@ -94,6 +94,7 @@ impl PipelineConfig {
         c.velocity.min_window_travel_px = 0.0;
         c.link.max_displacement_px = 0.0;
         c.link.fixture_frames = 0;
+        c.detect.noise_sigmas = 0.0;
         c
     }
 
@@ -133,6 +134,7 @@ impl PipelineConfig {
                 self.velocity.min_window_travel_px,
             ),
             ("link.max_displacement_px", self.link.max_displacement_px),
+            ("detect.noise_sigmas", self.detect.noise_sigmas),
         ];
         for (field, v) in finite_non_negative {
             if !v.is_finite() || v < 0.0 {
@@ -257,6 +259,8 @@ pub struct FrameStats {
     pub fit_components_cubic: usize,
     /// Detections (both cameras) taken for fixtures of the room or sensor and not matched.
     pub fixtures: usize,
+    /// Images (0 to 2) thresholded above `contrast_c` because of their noise.
+    pub noisy_images: usize,
 }
 
 /// A frame as the pipeline saw it: its index, sensor time, and whether it came with a pose
@@ -432,6 +436,10 @@ impl Pipeline {
             .detect(frame.left, &self.config.detect, &mut out.detections_left);
         self.right_detector
             .detect(frame.right, &self.config.detect, &mut out.detections_right);
+        out.stats.noisy_images = [&self.left_detector, &self.right_detector]
+            .iter()
+            .filter(|d| d.last_contrast_c() < self.config.detect.contrast_c)
+            .count();
 
         let rect = &self.rectification;
         let (left_features, left_raw) = rectify(&out.detections_left, |p| rect.left_to_rect(p));
