@@ -379,6 +379,14 @@ pub fn convergent_rig(
     }
 }
 
+/// Where the optical axes of a `convergent_rig` cross, in its rig frame (the left camera's).
+fn axes_crossing(baseline_m: f64, toe_in_rad: f64) -> Point3<f64> {
+    let left_from_baseline =
+        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in_rad).inverse();
+    let half_baseline_m = baseline_m / 2.0;
+    left_from_baseline * Point3::new(half_baseline_m, 0.0, half_baseline_m / toe_in_rad.tan())
+}
+
 /// The raw HoloLens 2 front-camera geometry (published raw intrinsics, a plausible lens model).
 pub fn hololens_raw_rig() -> StereoRig {
     let left = CameraModel {
@@ -470,6 +478,29 @@ impl ScenarioSpec {
             head: HeadMotion::None,
             clutter: Clutter::default(),
         };
+        let wind_tunnel = || ScenarioSpec {
+            default_frames: 120,
+            default_particles: 60,
+            domain_min: Point3::new(-0.3, -0.3, 0.6),
+            domain_max: Point3::new(0.4, 0.3, 1.1),
+            flow: Flow::Uniform(Vector3::new(1.53, -1.38, 0.0)),
+            diameter_m: 0.00418,
+            diameter_sd_m: 0.0005,
+            illumination: 200.0 * 4.0 * PI * 0.64,
+            background: 10.0,
+            background_gradient: 10.0,
+            illumination_gradient: 0.2,
+            ..flume()
+        };
+        let hololens_raw = || ScenarioSpec {
+            rig: hololens_raw_rig(),
+            // Raw frames are sideways: the baseline (rig y) is world x, so the world is upright.
+            head: HeadMotion::Fixed(Isometry3::rotation(Vector3::z() * (-PI / 2.0))),
+            default_particles: 20,
+            domain_min: Point3::new(-0.1, -0.15, 0.38),
+            domain_max: Point3::new(0.2, 0.15, 0.68),
+            ..flume()
+        };
         match scenario {
             Scenario::Uniform => unit_cube(),
             Scenario::Dense => ScenarioSpec {
@@ -486,20 +517,7 @@ impl ScenarioSpec {
                 }
             }
             Scenario::Flume => flume(),
-            Scenario::WindTunnel => ScenarioSpec {
-                default_frames: 120,
-                default_particles: 60,
-                domain_min: Point3::new(-0.3, -0.3, 0.6),
-                domain_max: Point3::new(0.4, 0.3, 1.1),
-                flow: Flow::Uniform(Vector3::new(1.53, -1.38, 0.0)),
-                diameter_m: 0.00418,
-                diameter_sd_m: 0.0005,
-                illumination: 200.0 * 4.0 * PI * 0.64,
-                background: 10.0,
-                background_gradient: 10.0,
-                illumination_gradient: 0.2,
-                ..flume()
-            },
+            Scenario::WindTunnel => wind_tunnel(),
             Scenario::MovingHead => ScenarioSpec {
                 default_particles: 20,
                 domain_min: Point3::new(-0.15, -0.15, 0.36),
@@ -512,30 +530,15 @@ impl ScenarioSpec {
                 },
                 ..flume()
             },
-            Scenario::HololensRaw => ScenarioSpec {
-                rig: hololens_raw_rig(),
-                // Raw frames are sideways: the baseline (rig y) is world x, so the world is upright.
-                head: HeadMotion::Fixed(Isometry3::rotation(Vector3::z() * (-PI / 2.0))),
-                default_particles: 20,
-                domain_min: Point3::new(-0.1, -0.15, 0.38),
-                domain_max: Point3::new(0.2, 0.15, 0.68),
-                ..flume()
-            },
+            Scenario::HololensRaw => hololens_raw(),
             Scenario::Fast => ScenarioSpec {
-                default_frames: 120,
                 // The domain fills the view, so particles cross it instead of appearing and
                 // vanishing inside it.
                 default_particles: 100,
                 domain_min: Point3::new(-0.8, -0.6, 0.7),
                 domain_max: Point3::new(0.8, 0.6, 1.1),
                 flow: Flow::Uniform(Vector3::new(1.53, -1.38, 0.0) * 2.0),
-                diameter_m: 0.00418,
-                diameter_sd_m: 0.0005,
-                illumination: 200.0 * 4.0 * PI * 0.64,
-                background: 10.0,
-                background_gradient: 10.0,
-                illumination_gradient: 0.2,
-                ..flume()
+                ..wind_tunnel()
             },
             Scenario::Creep => ScenarioSpec {
                 default_particles: 200,
@@ -562,10 +565,7 @@ impl ScenarioSpec {
             Scenario::WideConvergent => {
                 let toe_in = 22.5f64.to_radians();
                 let baseline_m = 0.5;
-                let left_from_baseline =
-                    UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in).inverse();
-                let crossing = left_from_baseline
-                    * Point3::new(baseline_m / 2.0, 0.0, baseline_m / 2.0 / toe_in.tan());
+                let crossing = axes_crossing(baseline_m, toe_in);
                 let half = Vector3::new(0.008, 0.006, 0.008);
                 ScenarioSpec {
                     rig: convergent_rig(640, 480, 8000.0, baseline_m, toe_in),
@@ -580,11 +580,7 @@ impl ScenarioSpec {
                 }
             }
             Scenario::Cluttered => ScenarioSpec {
-                rig: hololens_raw_rig(),
-                head: HeadMotion::Fixed(Isometry3::rotation(Vector3::z() * (-PI / 2.0))),
                 default_particles: 40,
-                domain_min: Point3::new(-0.1, -0.15, 0.38),
-                domain_max: Point3::new(0.2, 0.15, 0.68),
                 flow: Flow::Uniform(Vector3::new(0.2, -0.08, 0.03)),
                 noise_sd: 4.0,
                 clutter: Clutter {
@@ -595,15 +591,13 @@ impl ScenarioSpec {
                     fixtures: 12,
                     poster_contrast: 60.0,
                 },
-                ..flume()
+                ..hololens_raw()
             },
             Scenario::Convergent => {
                 let toe_in = 15f64.to_radians();
-                // The rig frame is the left camera's; the particles sit around the axes' crossing
-                // (0.15 m across, 0.56 m out, in the baseline's frame).
-                let left_from_baseline =
-                    UnitQuaternion::from_axis_angle(&Vector3::y_axis(), toe_in).inverse();
-                let crossing = left_from_baseline * Point3::new(0.15, 0.0, 0.15 / toe_in.tan());
+                // The particles sit around the axes' crossing (0.15 m across, 0.56 m out, in the
+                // baseline's frame).
+                let crossing = axes_crossing(0.3, toe_in);
                 let half = Vector3::new(0.05, 0.04, 0.05);
                 ScenarioSpec {
                     rig: convergent_rig(640, 480, 2000.0, 0.3, toe_in),
@@ -718,7 +712,6 @@ impl Synthesizer {
         let mut visible_in_both = 0;
         for p in &self.particles {
             let in_rig = rig_from_world * p.position;
-            let in_right = spec.rig.right_from_left * in_rig;
             // With the shutter open for part of the frame the image is the average of the
             // particle's positions over the exposure (its motion there taken as uniform).
             let velocity_in_rig = rig_from_world.rotation * spec.flow.velocity(&p.position, t_s);
@@ -739,7 +732,6 @@ impl Synthesizer {
                 seen_right |=
                     render_particle(spec, &spec.rig.right, &at_right, p, share, &mut right);
             }
-            let _ = in_right;
             visible_in_both += usize::from(seen_left && seen_right);
             truth.push(TruthRow {
                 frame: self.frame,

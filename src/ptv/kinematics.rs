@@ -42,6 +42,10 @@ struct PolynomialFit {
     coefficients: DMatrix<f64>,
     /// `(X^T X)^-1` in scaled time: a coefficient's variance is this diagonal times sigma^2.
     inverse_normal: DMatrix<f64>,
+    /// X: row r holds `tau_r^k` for each term k.
+    design: DMatrix<f64>,
+    /// Row r: sample r's offset from the fitted curve, x, y and z.
+    residuals: DMatrix<f64>,
     /// Per component, sum of squared residuals.
     squared_residuals: Vector3<f64>,
     samples: usize,
@@ -72,6 +76,8 @@ impl PolynomialFit {
         coefficients.iter().all(|v| v.is_finite()).then_some(Self {
             coefficients,
             inverse_normal,
+            design,
+            residuals,
             squared_residuals,
             samples: samples.len(),
             scale_s,
@@ -93,15 +99,9 @@ impl PolynomialFit {
 
     /// How much of a cubic term `d (t - t_eval)^3` the velocity absorbs, per unit of `d`: the
     /// bias this fit has where the path is not a parabola.
-    fn velocity_bias_per_cubic(&self, samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> f64 {
-        let terms = self.inverse_normal.nrows();
-        let cubes = DMatrix::from_fn(1, samples.len(), |_, r| {
-            ((samples[r].0 - t_eval_s) / self.scale_s).powi(3)
-        });
-        let design = DMatrix::from_fn(samples.len(), terms, |r, k| {
-            ((samples[r].0 - t_eval_s) / self.scale_s).powi(k as i32)
-        });
-        let absorbed = (&self.inverse_normal * design.transpose() * cubes.transpose())[(1, 0)];
+    fn velocity_bias_per_cubic(&self) -> f64 {
+        let cubes = self.design.column(1).map(|tau| tau.powi(3));
+        let absorbed = (&self.inverse_normal * self.design.transpose() * cubes)[(1, 0)];
         absorbed * self.scale_s * self.scale_s
     }
 
@@ -127,17 +127,9 @@ pub fn quadratic_residuals(
 ) -> Option<Vec<Vector3<f64>>> {
     let fit = PolynomialFit::new(samples, t_eval_s, 2)?;
     Some(
-        samples
-            .iter()
-            .map(|(t, p)| {
-                let tau = (t - t_eval_s) / fit.scale_s;
-                let on_curve = Vector3::from_fn(|c, _| {
-                    (0..3)
-                        .map(|k| fit.coefficients[(k, c)] * tau.powi(k as i32))
-                        .sum()
-                });
-                p.coords - on_curve
-            })
+        fit.residuals
+            .row_iter()
+            .map(|r| Vector3::new(r[0], r[1], r[2]))
             .collect(),
     )
 }
@@ -193,7 +185,7 @@ pub fn fit_adaptive(windows: &[Window], t_eval_s: f64) -> Option<AdaptiveFit> {
         .iter()
         .filter_map(|(m, samples)| {
             let fit = PolynomialFit::new(samples, t_eval_s, 2)?;
-            let bias = fit.velocity_bias_per_cubic(samples, t_eval_s);
+            let bias = fit.velocity_bias_per_cubic();
             Some((*m, fit, bias))
         })
         .collect();

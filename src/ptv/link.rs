@@ -216,9 +216,13 @@ impl CameraLinker {
         let d_ave = normalising_mean(features.iter().map(|f| f.diameter_px));
         let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
         let sorted_x = SortedByX::new(features);
-        let first_steps = FirstSteps::new(&self.tracks, features, scale);
+        // Indexed only when some track has no motion yet: most frames of a steady flow have none.
+        let first_steps = (config.predict_new_from_neighbours
+            && config.max_displacement_px > 0.0
+            && self.tracks.iter().any(|t| t.motion.is_none()))
+        .then(|| FirstSteps::new(&self.tracks, features, scale));
         let predictions: Vec<RectPoint> = (0..self.tracks.len())
-            .map(|t| self.predict(t, &first_steps, config))
+            .map(|t| self.predict(t, first_steps.as_ref(), config))
             .collect();
         let h = config.box_half_side_px;
         let mut candidates = Vec::new();
@@ -324,7 +328,12 @@ impl CameraLinker {
         out
     }
 
-    fn predict(&self, t: usize, first_steps: &FirstSteps, config: &LinkConfig) -> RectPoint {
+    fn predict(
+        &self,
+        t: usize,
+        first_steps: Option<&FirstSteps>,
+        config: &LinkConfig,
+    ) -> RectPoint {
         let track = &self.tracks[t];
         let last = track.last.rect;
         let frames = f64::from(track.missed + 1);
@@ -347,7 +356,7 @@ impl CameraLinker {
                 y: last.y + dy * frames,
             };
         }
-        if let Some((dx, dy)) = first_steps.consensus_step(t, last, config) {
+        if let Some((dx, dy)) = first_steps.and_then(|f| f.consensus_step(t, last, config)) {
             return RectPoint {
                 x: last.x + dx,
                 y: last.y + dy,
@@ -429,9 +438,6 @@ impl FirstSteps {
         const CONSENSUS_NEIGHBOURS: usize = 8;
         const CHANCE: f64 = 1e-3;
         let reach = config.max_displacement_px;
-        if reach <= 0.0 {
-            return None;
-        }
         let near = self
             .seen_last
             .nearest(last.x, last.y, CONSENSUS_NEIGHBOURS, t);
@@ -528,7 +534,10 @@ impl PointGrid {
         };
         let cells: Vec<usize> = points
             .iter()
-            .map(|(p, _)| grid.cell_of(p.x, p.y).0 + grid.cell_of(p.x, p.y).1 * columns)
+            .map(|(p, _)| {
+                let (column, row) = grid.cell_of(p.x, p.y);
+                column + row * columns
+            })
             .collect();
         for &c in &cells {
             grid.starts[c + 1] += 1;
