@@ -237,9 +237,18 @@ impl RunTotals {
         } else {
             String::new()
         };
+        let background = if config.detect.background_rise_per_frame > 0.0 {
+            format!(
+                " after a background that learns what stands still (rising {} grey levels per \
+                 frame)",
+                config.detect.background_rise_per_frame
+            )
+        } else {
+            String::new()
+        };
         let settled = format!(
             "stereo search {search}; linking box +-{box_px} px{first_steps}; velocity window \
-             {windows}{fits}; threshold {} grey levels above the local mean{noisy}",
+             {windows}{fits}; threshold {} grey levels above the local mean{noisy}{background}",
             -config.detect.contrast_c
         );
         let summary = format!(

@@ -111,14 +111,15 @@ fn a_vortex_links_slow_and_fast_particles_together() {
     assert_bounds_yield("vortex", &run(Scenario::Vortex, None, 1), 1.0, 0.65);
 }
 
-/// Raw HoloLens geometry in a furnished room: hot pixels, LEDs and posters with print are
+/// Raw HoloLens geometry in a furnished room: hot pixels, LEDs and posters with print were
 /// detected as particles too (82 detections per image for 40 particles); stereo-matched, two
-/// thirds of the vectors were ghosts (55 %). Features that stay put are taken for fixtures and
-/// left out of matching. Ghost and error bounds in full; yield is short of the 80 % (32 %:
-/// particles in front of the posters merge with the print), bounded at what is reached.
+/// thirds of the vectors were ghosts (55 %). The background model fades what stands still, and
+/// features that stay put are taken for fixtures and left out of matching. Ghost and error
+/// bounds in full; yield is short of the 80 % (56.7 %; 32 % before the background model, when
+/// particles in front of the posters merged with the print), bounded near what is reached.
 #[test]
 fn a_cluttered_room_gives_no_ghosts() {
-    assert_bounds_yield("cluttered", &run(Scenario::Cluttered, None, 1), 1.0, 0.30);
+    assert_bounds_yield("cluttered", &run(Scenario::Cluttered, None, 1), 1.0, 0.55);
 }
 
 #[test]

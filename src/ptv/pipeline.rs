@@ -95,6 +95,7 @@ impl PipelineConfig {
         c.link.max_displacement_px = 0.0;
         c.link.fixture_frames = 0;
         c.detect.noise_sigmas = 0.0;
+        c.detect.background_rise_per_frame = 0.0;
         c
     }
 
@@ -135,6 +136,10 @@ impl PipelineConfig {
             ),
             ("link.max_displacement_px", self.link.max_displacement_px),
             ("detect.noise_sigmas", self.detect.noise_sigmas),
+            (
+                "detect.background_rise_per_frame",
+                self.detect.background_rise_per_frame,
+            ),
         ];
         for (field, v) in finite_non_negative {
             if !v.is_finite() || v < 0.0 {
