@@ -97,23 +97,12 @@ pub fn write_synthetic(
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RunTotals {
     pub frames: usize,
-    pub detections_left: usize,
-    pub detections_right: usize,
-    pub matches: usize,
-    pub vectors: usize,
-    pub rejected: usize,
+    /// The frames' statistics, summed.
+    pub counts: FrameStats,
     /// Time spent inside `Pipeline::push`, seconds.
     pub pipeline_s: f64,
     /// The stereo search the pipeline settled on.
     pub stereo_search: Option<StereoSearch>,
-    pub linked_left: usize,
-    pub linked_right: usize,
-    pub stereo_candidates: usize,
-    pub left_with_candidates: usize,
-    pub fit_components_narrower: usize,
-    pub fit_components_cubic: usize,
-    pub fixtures: usize,
-    pub noisy_images: usize,
 }
 
 /// A run's health figures (see [`RunTotals::health`]).
@@ -133,20 +122,8 @@ pub struct HealthFigures {
 impl RunTotals {
     pub fn add(&mut self, s: &FrameStats, pipeline_s: f64) {
         self.frames += 1;
-        self.detections_left += s.detections_left;
-        self.detections_right += s.detections_right;
-        self.matches += s.matches;
-        self.vectors += s.vectors;
-        self.rejected += s.rejected;
+        self.counts += s;
         self.pipeline_s += pipeline_s;
-        self.linked_left += s.linked_left;
-        self.linked_right += s.linked_right;
-        self.stereo_candidates += s.stereo_candidates;
-        self.left_with_candidates += s.left_with_candidates;
-        self.fit_components_narrower += s.fit_components_narrower;
-        self.fit_components_cubic += s.fit_components_cubic;
-        self.fixtures += s.fixtures;
-        self.noisy_images += s.noisy_images;
     }
 
     /// Empty totals that remember the stereo search `pipeline` settled on.
@@ -159,23 +136,26 @@ impl RunTotals {
 
     /// The run's health figures so far.
     pub fn figures(&self) -> HealthFigures {
-        let detections = self.detections_left + self.detections_right;
+        let detections = self.counts.detections_left + self.counts.detections_right;
         HealthFigures {
             detections_per_image: ratio(detections, 2 * self.frames),
-            linked_fraction: ratio(self.linked_left + self.linked_right, detections),
-            stereo_candidates_per_particle: ratio(
-                self.stereo_candidates,
-                self.left_with_candidates,
+            linked_fraction: ratio(
+                self.counts.linked_left + self.counts.linked_right,
+                detections,
             ),
-            matched_fraction: ratio(self.matches, self.detections_left),
-            velocity_fraction: ratio(self.vectors, self.matches),
+            stereo_candidates_per_particle: ratio(
+                self.counts.stereo_candidates,
+                self.counts.left_with_candidates,
+            ),
+            matched_fraction: ratio(self.counts.matches, self.counts.detections_left),
+            velocity_fraction: ratio(self.counts.vectors, self.counts.matches),
         }
     }
 
     /// What a run settled on, how healthy it was, and in words what its figures say cannot be
     /// trusted; a run that gave no vectors always gets a warning saying why.
     pub fn health(&self, config: &PipelineConfig) -> RunHealth {
-        let detections = self.detections_left + self.detections_right;
+        let detections = self.counts.detections_left + self.counts.detections_right;
         let HealthFigures {
             detections_per_image,
             linked_fraction,
@@ -213,26 +193,28 @@ impl RunTotals {
         } else {
             format!("{window} frames")
         };
-        let components = 3 * self.vectors;
+        let components = 3 * self.counts.vectors;
         let fits = if velocity.adaptive_fit && components > 0 {
             format!(
                 ", fit per component: {:.0} % quadratic on the full window, {:.0} % on a \
                  narrower one, {:.0} % cubic",
                 100.0
                     * ratio(
-                        components - self.fit_components_narrower - self.fit_components_cubic,
+                        components
+                            - self.counts.fit_components_narrower
+                            - self.counts.fit_components_cubic,
                         components
                     ),
-                100.0 * ratio(self.fit_components_narrower, components),
-                100.0 * ratio(self.fit_components_cubic, components)
+                100.0 * ratio(self.counts.fit_components_narrower, components),
+                100.0 * ratio(self.counts.fit_components_cubic, components)
             )
         } else {
             String::new()
         };
-        let noisy = if self.noisy_images > 0 {
+        let noisy = if self.counts.noisy_images > 0 {
             format!(
                 " (raised for sensor noise in {:.0} % of images)",
-                100.0 * ratio(self.noisy_images, 2 * self.frames)
+                100.0 * ratio(self.counts.noisy_images, 2 * self.frames)
             )
         } else {
             String::new()
@@ -259,10 +241,10 @@ impl RunTotals {
             100.0 * linked_fraction,
             100.0 * matched_fraction,
             100.0 * vector_fraction,
-            ratio(self.fixtures, 2 * self.frames)
+            ratio(self.counts.fixtures, 2 * self.frames)
         );
         let mut warnings = Vec::new();
-        if self.vectors == 0 {
+        if self.counts.vectors == 0 {
             warnings.push(if self.frames == 0 {
                 "no vectors: the recording has no frames".to_string()
             } else if detections == 0 {
@@ -272,7 +254,7 @@ impl RunTotals {
                      area within detect.min_area_px..max_area_px)",
                     -config.detect.contrast_c
                 )
-            } else if self.matches == 0 {
+            } else if self.counts.matches == 0 {
                 format!(
                     "no vectors: particles were detected ({detections_per_image:.1} per image) but \
                      none matched between the cameras, so none lay in the stereo search: {search}; \
@@ -290,7 +272,7 @@ impl RunTotals {
                      followed through the {windows} a centred velocity needs ({:.0} % of \
                      detections linked to an earlier frame): particles may move more than the \
                      linking box (+-{box_px} px) per frame",
-                    self.matches,
+                    self.counts.matches,
                     100.0 * linked_fraction
                 )
             });
@@ -532,16 +514,26 @@ mod tests {
     fn healthy() -> RunTotals {
         RunTotals {
             frames: 100,
-            detections_left: 3000,
-            detections_right: 3000,
-            matches: 2900,
-            vectors: 2200,
-            linked_left: 2900,
-            linked_right: 2900,
-            stereo_candidates: 3500,
-            left_with_candidates: 2950,
+            counts: FrameStats {
+                detections_left: 3000,
+                detections_right: 3000,
+                matches: 2900,
+                vectors: 2200,
+                linked_left: 2900,
+                linked_right: 2900,
+                stereo_candidates: 3500,
+                left_with_candidates: 2950,
+                ..Default::default()
+            },
             ..Default::default()
         }
+    }
+
+    /// `totals` with its counts changed by `change`.
+    fn with(totals: RunTotals, change: impl FnOnce(&mut FrameStats)) -> RunTotals {
+        let mut t = totals;
+        change(&mut t.counts);
+        t
     }
 
     #[test]
@@ -564,47 +556,37 @@ mod tests {
             assert_eq!(warnings.len(), 1, "{warnings:?}");
             warnings[0].clone()
         };
-        let none = |t: RunTotals| RunTotals { vectors: 0, ..t };
+        let none = |t: RunTotals| with(t, |c| c.vectors = 0);
         assert!(why(none(RunTotals::default())).contains("no frames"));
         let dark = RunTotals {
             frames: 50,
             ..Default::default()
         };
         assert!(why(dark).contains("no particle was detected"));
-        let unmatched = RunTotals {
-            matches: 0,
-            ..none(healthy())
-        };
+        let unmatched = with(none(healthy()), |c| c.matches = 0);
         assert!(why(unmatched).contains("none matched between the cameras"));
         let short = RunTotals {
             frames: 4,
             ..none(healthy())
         };
         assert!(why(short).contains("has 4 frames"));
-        let broken = RunTotals {
-            linked_left: 300,
-            linked_right: 300,
-            ..none(healthy())
-        };
+        let broken = with(none(healthy()), |c| {
+            c.linked_left = 300;
+            c.linked_right = 300;
+        });
         assert!(why(broken).contains("linking box"));
     }
 
     #[test]
     fn tracks_that_break_and_ambiguous_matches_are_warned_of() {
         let config = PipelineConfig::default();
-        let fast = RunTotals {
-            vectors: 20,
-            ..healthy()
-        };
+        let fast = with(healthy(), |c| c.vectors = 20);
         let warnings = fast.health(&config).warnings;
         assert!(
             warnings.iter().any(|w| w.contains("tracks break")),
             "{warnings:?}"
         );
-        let crowded = RunTotals {
-            stereo_candidates: 9000,
-            ..healthy()
-        };
+        let crowded = with(healthy(), |c| c.stereo_candidates = 9000);
         let warnings = crowded.health(&config).warnings;
         assert!(
             warnings.iter().any(|w| w.contains("ambiguous")),

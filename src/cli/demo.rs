@@ -68,8 +68,8 @@ pub fn run(args: Args) -> Result<()> {
     println!(
         "engine: {:.0} stereo frames/s on one thread, {:.1} matches/frame, {} vectors\n",
         run.totals.frames as f64 / run.totals.pipeline_s.max(1e-9),
-        run.totals.matches as f64 / run.totals.frames.max(1) as f64,
-        run.totals.vectors
+        run.totals.counts.matches as f64 / run.totals.frames.max(1) as f64,
+        run.totals.counts.vectors
     );
     print!("{}", run.report);
     Ok(())

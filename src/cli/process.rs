@@ -96,10 +96,10 @@ pub fn run(args: Args) -> Result<()> {
     eprintln!(
         "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough) -> {}; pipeline {:.0} frames/s",
         totals.frames,
-        (totals.detections_left + totals.detections_right) as f64 / (2 * totals.frames.max(1)) as f64,
-        totals.matches as f64 / totals.frames.max(1) as f64,
-        totals.vectors,
-        totals.rejected,
+        (totals.counts.detections_left + totals.counts.detections_right) as f64 / (2 * totals.frames.max(1)) as f64,
+        totals.counts.matches as f64 / totals.frames.max(1) as f64,
+        totals.counts.vectors,
+        totals.counts.rejected,
         out.display(),
         totals.frames as f64 / totals.pipeline_s.max(1e-9)
     );

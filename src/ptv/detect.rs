@@ -298,12 +298,11 @@ impl Detector {
                 *d = a + 4 * b + 6 * c + 4 * e + f;
             }
             if rise > 0 {
-                // The image is compared with the model as it stood before this frame (a
-                // particle arriving at a pixel keeps its whole contrast); the updated model
-                // takes its place once the image is measured.
-                // A pixel brighter than its model only starts raising it after
-                // BACKGROUND_DELAY_FRAMES frames in a row: a particle passing over it leaves the
-                // model (and so its own centroid) untouched.
+                // The image is compared with the model as it stood before this frame, so a
+                // particle arriving at a pixel keeps its whole contrast; the updated model takes
+                // its place once the image is measured. A pixel brighter than its model raises
+                // it only after BACKGROUND_DELAY_FRAMES frames in a row, so a particle passing
+                // over it leaves the model (and its own centroid) untouched.
                 let row = y * w..(y + 1) * w;
                 for (((d, &b), next), bright) in dst
                     .iter_mut()
@@ -558,14 +557,11 @@ impl Detector {
         }
     }
 
-    /// Raw intensity above the background model at a sub-pixel position (bilinear), 0 outside
-    /// the image.
-    fn above_background(&self, image: ImageView<'_>, x: f64, y: f64) -> f64 {
-        if x < 0.0 || y < 0.0 || x > (image.width - 1) as f64 || y > (image.height - 1) as f64 {
-            return 0.0;
-        }
-        let nearest = (y.round() as usize) * image.width + x.round() as usize;
-        (image.bilinear(PixelPoint { x, y }) - self.background_at(nearest)).max(0.0)
+    /// Raw intensity above the background model at a centroid (bilinear, clamped to the image).
+    fn brightness_at(&self, image: ImageView<'_>, centroid: PixelPoint) -> f64 {
+        let nearest = (centroid.y.round() as usize).min(image.height - 1) * image.width
+            + (centroid.x.round() as usize).min(image.width - 1);
+        (image.bilinear(centroid) - self.background_at(nearest)).max(0.0)
     }
 
     /// Splits a region in two along its long axis.
@@ -666,7 +662,7 @@ impl Detector {
         Some(Detection {
             centroid,
             diameter_px: (4.0 * pixels.len() as f64 / std::f64::consts::PI).sqrt(),
-            brightness: self.above_background(image, centroid.x, centroid.y),
+            brightness: self.brightness_at(image, centroid),
             area_px: pixels.len() as u32,
             from_overlap: false,
         })

@@ -119,23 +119,43 @@ impl PolynomialFit {
     }
 }
 
-/// Each sample's offset from the least-squares quadratic through `samples` (centred on
-/// `t_eval_s`), in sample order; `None` where `fit_quadratic` would be.
-pub fn quadratic_residuals(
-    samples: &[(f64, Point3<f64>)],
-    t_eval_s: f64,
-) -> Option<Vec<Vector3<f64>>> {
-    let fit = PolynomialFit::new(samples, t_eval_s, 2)?;
-    Some(
-        fit.residuals
-            .row_iter()
-            .map(|r| Vector3::new(r[0], r[1], r[2]))
-            .collect(),
-    )
+/// A candidate window of a track, fitted once with the method's quadratic (centred on the
+/// evaluation time): the smoothness check reads its residuals, the adaptive choice its fit.
+pub struct QuadraticWindow {
+    /// Frames each side of the centre the window spans.
+    pub half_window_frames: usize,
+    samples: Vec<(f64, Point3<f64>)>,
+    quadratic: PolynomialFit,
 }
 
-/// A candidate window: its half-width in frames and its (time, position) samples.
-pub type Window = (usize, Vec<(f64, Point3<f64>)>);
+impl QuadraticWindow {
+    /// `None` where `fit_quadratic` would be.
+    pub fn new(
+        half_window_frames: usize,
+        samples: Vec<(f64, Point3<f64>)>,
+        t_eval_s: f64,
+    ) -> Option<Self> {
+        let quadratic = PolynomialFit::new(&samples, t_eval_s, 2)?;
+        Some(Self {
+            half_window_frames,
+            samples,
+            quadratic,
+        })
+    }
+
+    /// Each sample's offset from the quadratic, in sample order.
+    pub fn residuals(&self) -> impl Iterator<Item = Vector3<f64>> + '_ {
+        self.quadratic
+            .residuals
+            .row_iter()
+            .map(|r| Vector3::new(r[0], r[1], r[2]))
+    }
+
+    /// The quadratic's path at the evaluation time (`fit_quadratic` of the window).
+    pub fn motion(&self) -> Option<MotionFit> {
+        self.quadratic.motion().finite()
+    }
+}
 
 /// The fit chosen for one velocity component.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -163,37 +183,36 @@ pub struct AdaptiveFit {
 /// `bias^2 + variance`, the cubic term's own noise discounted so a straight path is not read as
 /// curved (and ignored unless it is far above that noise). Falls back to the widest quadratic when the samples cannot support a cubic. The
 /// reported residual is the widest quadratic's, as the smoothness check expects.
-pub fn fit_adaptive(windows: &[Window], t_eval_s: f64) -> Option<AdaptiveFit> {
-    let (widest_m, widest) = windows.last()?;
-    let reference_quadratic = PolynomialFit::new(widest, t_eval_s, 2)?;
+pub fn fit_adaptive(windows: &[QuadraticWindow], t_eval_s: f64) -> Option<AdaptiveFit> {
+    let widest = windows.last()?;
+    let reference_quadratic = &widest.quadratic;
     let fallback = || AdaptiveFit {
         fit: reference_quadratic.motion(),
         choice: [FitChoice {
-            half_window_frames: *widest_m as u8,
+            half_window_frames: widest.half_window_frames as u8,
             order: 2,
         }; 3],
     };
     // A cubic's noise estimate needs residual degrees of freedom to mean anything.
-    let cubic = match PolynomialFit::new(widest, t_eval_s, 3) {
+    let cubic = match PolynomialFit::new(&widest.samples, t_eval_s, 3) {
         Some(c) if c.samples >= 4 + 3 => c,
         _ => {
             let widest_quadratic = fallback();
             return widest_quadratic.fit.finite().map(|_| widest_quadratic);
         }
     };
-    let quadratics: Vec<(usize, PolynomialFit, f64)> = windows
+    let quadratics: Vec<(usize, &PolynomialFit, f64)> = windows
         .iter()
-        .filter_map(|(m, samples)| {
-            let fit = PolynomialFit::new(samples, t_eval_s, 2)?;
-            let bias = fit.velocity_bias_per_cubic();
-            Some((*m, fit, bias))
+        .map(|w| {
+            let bias = w.quadratic.velocity_bias_per_cubic();
+            (w.half_window_frames, &w.quadratic, bias)
         })
         .collect();
     let dof = (cubic.samples - 4) as f64;
     let mut position = Vector3::zeros();
     let mut velocity = Vector3::zeros();
     let mut choice = [FitChoice {
-        half_window_frames: *widest_m as u8,
+        half_window_frames: widest.half_window_frames as u8,
         order: 3,
     }; 3];
     for c in 0..3 {
@@ -332,10 +351,10 @@ mod tests {
         dt: f64,
         path: impl Fn(f64) -> f64 + Copy,
         noise: impl Fn(usize) -> f64 + Copy,
-    ) -> Vec<Window> {
+    ) -> Vec<QuadraticWindow> {
         let widest = window(m, dt, path, noise);
         (2..=m)
-            .map(|w| (w, widest[m - w..=m + w].to_vec()))
+            .map(|w| QuadraticWindow::new(w, widest[m - w..=m + w].to_vec(), 0.0).expect("fit"))
             .collect()
     }
 
@@ -347,7 +366,7 @@ mod tests {
         let path = |t: f64| 0.3 * t + 400.0 * t * t * t;
         let noise = |i: usize| 1e-5 * ((i * 7919) % 13) as f64 / 13.0;
         let windows = nested(5, dt, path, noise);
-        let quadratic = fit_quadratic(&windows[3].1, 0.0).expect("fit");
+        let quadratic = windows[3].motion().expect("fit");
         let chosen = fit_adaptive(&windows, 0.0).expect("fit");
         assert!((quadratic.velocity.x - 0.3).abs() > 0.05, "{quadratic:?}");
         assert!((chosen.fit.velocity.x - 0.3).abs() < 0.01, "{chosen:?}");

@@ -9,7 +9,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::detect::{DetectConfig, Detection, Detector};
-use super::kinematics::{fit_adaptive, fit_line, fit_quadratic, quadratic_residuals, FitChoice};
+use super::kinematics::{fit_adaptive, fit_line, FitChoice, QuadraticWindow};
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use super::stereo::{match_stereo, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
@@ -266,6 +266,27 @@ pub struct FrameStats {
     pub fixtures: usize,
     /// Images (0 to 2) thresholded above `contrast_c` because of their noise.
     pub noisy_images: usize,
+}
+
+/// Summing frames' statistics gives a run's (`tracks` then counts track-frames).
+impl std::ops::AddAssign<&FrameStats> for FrameStats {
+    fn add_assign(&mut self, s: &FrameStats) {
+        self.detections_left += s.detections_left;
+        self.detections_right += s.detections_right;
+        self.matches += s.matches;
+        self.tracks += s.tracks;
+        self.vectors += s.vectors;
+        self.causal_vectors += s.causal_vectors;
+        self.rejected += s.rejected;
+        self.linked_left += s.linked_left;
+        self.linked_right += s.linked_right;
+        self.stereo_candidates += s.stereo_candidates;
+        self.left_with_candidates += s.left_with_candidates;
+        self.fit_components_narrower += s.fit_components_narrower;
+        self.fit_components_cubic += s.fit_components_cubic;
+        self.fixtures += s.fixtures;
+        self.noisy_images += s.noisy_images;
+    }
 }
 
 /// A frame as the pipeline saw it: its index, sensor time, and whether it came with a pose
@@ -604,18 +625,13 @@ impl Pipeline {
     /// along the line of sight (depth noise, large) and across it (centroid noise, small)
     /// separately: a track that swapped to a neighbouring particle jumps sideways by a few
     /// pixels, which a single limit set by the depth noise would let through.
-    fn is_rough(&self, window: &[&Sample], t_eval_s: f64, depth_m: f64) -> bool {
+    fn is_rough(&self, window: &[&Sample], fit: &QuadraticWindow, depth_m: f64) -> bool {
         let v = &self.config.velocity;
         if v.max_residual_ratio <= 0.0 {
             return false;
         }
-        let points: Vec<(f64, Point3<f64>)> =
-            window.iter().map(|s| (s.t_s, s.point_in_world)).collect();
-        let Some(residuals) = quadratic_residuals(&points, t_eval_s) else {
-            return false;
-        };
         let (mut along_sq, mut across_sq) = (0.0, 0.0);
-        for (s, r) in window.iter().zip(&residuals) {
+        for (s, r) in window.iter().zip(fit.residuals()) {
             let sight = (s.point_in_world - s.camera_in_world)
                 .try_normalize(1e-12)
                 .unwrap_or_else(Vector3::z);
@@ -725,12 +741,15 @@ impl Pipeline {
             }
             any_supported = true;
             let samples: Vec<&Sample> = clean_within(w).collect();
-            if self.is_rough(&samples, centre.t_s, centre.depth_m) {
+            let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+            // Ill-posed only without distinct sample times, which the counts above exclude.
+            let Some(window) = QuadraticWindow::new(w as usize, points, centre.t_s) else {
+                continue;
+            };
+            if self.is_rough(&samples, &window, centre.depth_m) {
                 continue;
             }
-            let points: Vec<(f64, Point3<f64>)> =
-                samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
-            windows.push((w as usize, points));
+            windows.push(window);
         }
         if windows.is_empty() {
             return any_supported.then_some(Err(()));
@@ -739,7 +758,7 @@ impl Pipeline {
             let adaptive = fit_adaptive(&windows, centre.t_s)?;
             (adaptive.fit, Some(adaptive.choice))
         } else {
-            (fit_quadratic(&windows.last()?.1, centre.t_s)?, None)
+            (windows.last()?.motion()?, None)
         };
         Some(Ok((
             VelocityVector {
