@@ -104,7 +104,7 @@ fn accelerating_flow_meets_the_turbulence_bounds() {
 
 /// Slow particles near the axis and 25-50 px per frame at the rim, in one scene, with a
 /// centripetal acceleration. Error and ghost bounds in full; the yield bound is what is reached
-/// today (68.6 %; 39 % before first steps were learnt), short of the 80 % asked for: identity
+/// today (71.7 %; 39 % before first steps were learnt), short of the 80 % asked for: identity
 /// swaps between turning neighbours still break tracks.
 #[test]
 fn a_vortex_links_slow_and_fast_particles_together() {
@@ -115,11 +115,13 @@ fn a_vortex_links_slow_and_fast_particles_together() {
 /// detected as particles too (82 detections per image for 40 particles); stereo-matched, two
 /// thirds of the vectors were ghosts (55 %). The background model fades what stands still, and
 /// features that stay put are taken for fixtures and left out of matching. Ghost and error
-/// bounds in full; yield is short of the 80 % (56.7 %; 32 % before the background model, when
-/// particles in front of the posters merged with the print), bounded near what is reached.
+/// bounds in full; 24 % of its particle images touch another, and yield is short of the 70 %
+/// asked for there (62.8 %; 56.7 % before overlapping particles were separated by fitting,
+/// 32 % before the background model, when particles in front of the posters merged with the
+/// print), bounded near what is reached.
 #[test]
 fn a_cluttered_room_gives_no_ghosts() {
-    assert_bounds_yield("cluttered", &run(Scenario::Cluttered, None, 1), 1.0, 0.55);
+    assert_bounds_yield("cluttered", &run(Scenario::Cluttered, None, 1), 1.0, 0.60);
 }
 
 #[test]

@@ -516,9 +516,23 @@ async fn shutdown_processes_queued_frames_says_bye_and_leaves_complete_recording
         .send(Message::text(r#"{"type":"subscribe","session":"*"}"#))
         .await
         .expect("subscribes");
-    tokio::time::sleep(Duration::from_millis(600)).await;
-    let listed = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
-    assert!(listed.contains(r#""id":"s1""#), "{listed}");
+    // Stop once enough frames for centred vectors are processed, however fast this machine is.
+    let mut processed = 0;
+    for _ in 0..600 {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let listed = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
+        let sessions: serde_json::Value = serde_json::from_str(&listed).expect("sessions json");
+        let s1 = sessions["sessions"]
+            .as_array()
+            .and_then(|all| all.iter().find(|s| s["id"] == "s1"));
+        processed = s1.map_or(0, |s| {
+            s["counters"]["frames_processed"].as_u64().unwrap_or(0)
+        });
+        if processed >= 20 {
+            break;
+        }
+    }
+    assert!(processed >= 20, "the session processed {processed} frames");
     let health = http_get(&format!("http://{}/healthz", server.addr)).await;
     assert!(health.contains(r#""status":"ok""#), "{health}");
     server.stop().await;
@@ -526,7 +540,7 @@ async fn shutdown_processes_queued_frames_says_bye_and_leaves_complete_recording
     let report = streaming.await.expect("replay task");
     assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
     let c = report.counters.expect("counters");
-    assert!(c.frames_processed > 5 && c.frames_processed < 80, "{c:?}");
+    assert!(c.frames_processed >= 20 && c.frames_processed < 80, "{c:?}");
     // Every frame the server took was processed, answered and recorded before it said bye.
     assert_eq!(c.frames_processed, c.frames_received, "{c:?}");
     assert_eq!(report.latencies_s.len() as u64, c.frames_processed);

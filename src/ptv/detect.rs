@@ -7,13 +7,15 @@
 //! them directly gives the same particles without tracing contours. Per region: intensity-weighted
 //! moment centroid (eqs. 2-3), brightness at the centroid, equivalent diameter.
 //!
-//! Beyond the method: regions holding several separated intensity peaks (touching particles) can be
-//! split between their peaks ([`DetectConfig::split_touching`]); a causal per-camera background
-//! model takes what stands still out of the blurred image before the threshold
+//! Beyond the method: regions holding several particles can be split between their intensity
+//! peaks or cut in two ([`DetectConfig::split_touching`]), and the parts refined by fitting them
+//! together as spots ([`DetectConfig::fit_overlaps`]); a causal per-camera background model takes
+//! what stands still out of the blurred image before the threshold
 //! ([`DetectConfig::background_rise_per_frame`]).
 
 use serde::{Deserialize, Serialize};
 
+use super::blobs::{fit_spots, Spot, SpotFit};
 use super::ImageView;
 use crate::geometry::PixelPoint;
 
@@ -71,6 +73,13 @@ pub struct DetectConfig {
     /// A dip between two peaks must fall below `(1 - split_dip_fraction)` of the lower peak's
     /// height above the region's edge for the peaks to count as separate particles.
     pub split_dip_fraction: f64,
+    /// Refine the parts of a split region by fitting them together as spots (Gaussian to
+    /// flat-topped) to the blurred image, so a particle's image may run under its neighbour's
+    /// instead of being cut at the boundary between them. Where the fit is trustworthy the
+    /// parts take its centres, and overlapping ones are then measured too (see
+    /// [`Separation::Fitted`]); false: parts keep the cut's centroids and overlapping ones are
+    /// only tracked.
+    pub fit_overlaps: bool,
 }
 
 impl Default for DetectConfig {
@@ -87,6 +96,7 @@ impl Default for DetectConfig {
             max_axis_ratio: 1.5,
             split_touching: true,
             split_dip_fraction: 0.25,
+            fit_overlaps: true,
         }
     }
 }
@@ -132,9 +142,23 @@ pub struct Detection {
     /// Intensity at the centroid (bilinear) above the background model, grey levels.
     pub brightness: f64,
     pub area_px: u32,
-    /// Cut out of an elongated region of overlapping particles: found, but its centroid is
+    /// How it was told apart from its neighbours, which decides what its centroid is good for.
+    pub separation: Separation,
+}
+
+/// How a particle image was told apart from its neighbours. Ordered from the most to the least
+/// exact centroid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Separation {
+    /// On its own, or parted from a touching neighbour at a dip between their peaks.
+    Clear,
+    /// Overlapping a neighbour, separated by fitting both as spots, and the fit is trustworthy
+    /// ([`SpotFit::is_trustworthy`]): centroids within about 0.1 px. Measured where a track's
+    /// clear samples do not support a velocity fit on their own.
+    Fitted,
+    /// Overlapping, cut in two by 2-means, and no trustworthy spot fit: its centroid may be
     /// pulled towards its neighbour, so good for tracking and not for measuring.
-    pub from_overlap: bool,
+    Cut,
 }
 
 /// A pixel of a region with its coordinates, so nothing downstream divides by the width.
@@ -518,8 +542,8 @@ impl Detector {
     /// Measures a region. A round region is one particle. An elongated one is several touching or
     /// overlapping particles whose merged centroid lies on none of them: it is split between its
     /// separated intensity peaks, or failing that cut in two by intensity-weighted 2-means along its
-    /// long axis, and kept only if every part comes out round. 2-means parts are flagged
-    /// `from_overlap`.
+    /// long axis, and kept only if every part comes out round. The parts are then refined by a
+    /// spot fit ([`DetectConfig::fit_overlaps`]); see [`Separation`] for what each is good for.
     fn resolve(
         &self,
         image: ImageView<'_>,
@@ -540,21 +564,107 @@ impl Detector {
         }
         // Parts separated by a dip are particles that touch; parts cut by 2-means overlap, and
         // their centroids are pulled towards each other.
-        let (parts, from_overlap) = match self.split_at_peaks(image, config, label) {
-            Some(parts) => (parts, false),
-            None => (self.two_means(image, config, region), true),
+        let (parts, separation) = match self.split_at_peaks(image, config, label) {
+            Some(parts) => (parts, Separation::Clear),
+            None => (self.two_means(image, config, region), Separation::Cut),
         };
-        if parts
+        if !parts
             .iter()
             .all(|p| p.len() >= config.min_area_px && !elongated(p))
         {
-            for part in &parts {
-                out.extend(
-                    self.measure(image, config, part)
-                        .map(|d| Detection { from_overlap, ..d }),
-                );
+            return;
+        }
+        let mut measured: Vec<Detection> = parts
+            .iter()
+            .filter_map(|part| self.measure(image, config, part))
+            .map(|d| Detection { separation, ..d })
+            .collect();
+        if config.fit_overlaps && measured.len() == parts.len() {
+            // An untrusted fit changes nothing: measured on the synthetic scenes, even its
+            // better-placed cut parts moved tracks enough to triple one rig's out-of-plane error.
+            if let Some(fit) = self
+                .fit_spots_to_region(image, label, &measured)
+                .filter(SpotFit::is_trustworthy)
+            {
+                for (d, spot) in measured.iter_mut().zip(&fit.spots) {
+                    d.centroid = PixelPoint {
+                        x: spot.x,
+                        y: spot.y,
+                    };
+                    d.brightness = self.brightness_at(image, d.centroid);
+                    d.separation = d.separation.min(Separation::Fitted);
+                }
             }
         }
+        out.extend(measured);
+    }
+
+    /// Fits the parts of the current region as spots to the blurred image (background model
+    /// subtracted) over the region and a 2-pixel margin of background around it; pixels of
+    /// other regions are left out.
+    fn fit_spots_to_region(
+        &self,
+        image: ImageView<'_>,
+        label: u32,
+        parts: &[Detection],
+    ) -> Option<SpotFit> {
+        let (w, h) = (image.width, image.height);
+        let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
+        for p in &self.region {
+            x0 = x0.min(p.x);
+            y0 = y0.min(p.y);
+            x1 = x1.max(p.x);
+            y1 = y1.max(p.y);
+        }
+        // Two pixels of background around the region pin down the floor and the spots' tails
+        // (with one, in a trial under an earlier iteration limit, the cluttered room lost 1.6
+        // points of yield).
+        let margin = 2;
+        let (x0, y0) = (
+            (x0 as usize).saturating_sub(margin),
+            (y0 as usize).saturating_sub(margin),
+        );
+        let (x1, y1) = (
+            (x1 as usize + margin).min(w - 1),
+            (y1 as usize + margin).min(h - 1),
+        );
+        // Only pixels within the margin of the region: an elongated region's bounding box is
+        // mostly background far from either particle.
+        let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
+        let mut near = vec![false; bw * bh];
+        for p in &self.region {
+            let (px, py) = (p.x as usize - x0, p.y as usize - y0);
+            for ny in py.saturating_sub(margin)..=(py + margin).min(bh - 1) {
+                let row = ny * bw;
+                near[row + px.saturating_sub(margin)..=row + (px + margin).min(bw - 1)].fill(true);
+            }
+        }
+        let mut samples = Vec::with_capacity(bw * bh);
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let j = y * w + x;
+                if near[(y - y0) * bw + (x - x0)]
+                    && (self.mask[j] == 0 || (self.mask[j] == 2 && self.labels[j] == label))
+                {
+                    samples.push((x as f64, y as f64, self.blurred[j] as f64 / 256.0));
+                }
+            }
+        }
+        let seeds: Vec<Spot> = parts
+            .iter()
+            .map(|d| {
+                let i = (d.centroid.y.round() as usize).min(h - 1) * w
+                    + (d.centroid.x.round() as usize).min(w - 1);
+                Spot {
+                    x: d.centroid.x,
+                    y: d.centroid.y,
+                    amplitude: self.blurred[i] as f64 / 256.0,
+                    sigma: (d.diameter_px / 3.5).max(0.8),
+                    flatness: 1.2,
+                }
+            })
+            .collect();
+        fit_spots(&samples, &seeds)
     }
 
     /// Raw intensity above the background model at a centroid (bilinear, clamped to the image).
@@ -664,7 +774,7 @@ impl Detector {
             diameter_px: (4.0 * pixels.len() as f64 / std::f64::consts::PI).sqrt(),
             brightness: self.brightness_at(image, centroid),
             area_px: pixels.len() as u32,
-            from_overlap: false,
+            separation: Separation::Clear,
         })
     }
 
@@ -877,7 +987,7 @@ mod tests {
         let split = detect(w, &img, &DetectConfig::default());
         assert_eq!(split.len(), 2, "{split:?}");
         assert!(
-            split.iter().all(|d| !d.from_overlap),
+            split.iter().all(|d| d.separation == Separation::Clear),
             "separated by a dip: touching, not overlapping"
         );
         // Each part keeps its half of the bridge (the middle column goes to one side), which pulls
@@ -906,7 +1016,7 @@ mod tests {
     }
 
     #[test]
-    fn overlapping_discs_are_cut_in_two() {
+    fn heavily_overlapping_discs_are_cut_in_two_and_only_tracked() {
         let w = 30;
         let mut img = vec![0u8; w * 20];
         for y in 0..20usize {
@@ -916,14 +1026,74 @@ mod tests {
                 img[y * w + x] = (u8::from(r1 < 4.0) + u8::from(r2 < 4.0)) * 100;
             }
         }
-        let d = detect(w, &img, &DetectConfig::default());
-        assert_eq!(d.len(), 2, "{d:?}");
-        assert!(d.iter().all(|d| d.from_overlap));
-        let mut xs: Vec<f64> = d.iter().map(|d| d.centroid.x).collect();
-        xs.sort_by(f64::total_cmp);
+        let centres = |d: &[Detection]| {
+            let mut xs: Vec<f64> = d.iter().map(|d| d.centroid.x).collect();
+            xs.sort_by(f64::total_cmp);
+            xs
+        };
+        let cut_only = DetectConfig {
+            fit_overlaps: false,
+            ..Default::default()
+        };
+        let cut = detect(w, &img, &cut_only);
+        assert_eq!(cut.len(), 2, "{cut:?}");
+        assert!(cut.iter().all(|d| d.separation == Separation::Cut));
+        let xs = centres(&cut);
         assert!(
             (xs[0] - 11.0).abs() < 0.8 && (xs[1] - 17.0).abs() < 0.8,
             "{xs:?}"
+        );
+        // Centres 6 px apart with 4 px radii: too close for the fit to be trusted, so the cut
+        // stands.
+        let fitted = detect(w, &img, &DetectConfig::default());
+        assert_eq!(fitted, cut);
+    }
+
+    #[test]
+    fn overlapping_spots_without_a_dip_are_fitted_and_measured() {
+        // Two Gaussian spots (sigma 1.5 px) 4.8 px apart: after the 5x5 blur there is no dip
+        // between them, so they are cut, and the fit separates them.
+        let w = 32;
+        let truth = [(12.3, 10.4), (16.9, 11.8)];
+        let img: Vec<u8> = (0..w * 22)
+            .map(|i| {
+                let (x, y) = ((i % w) as f64, (i / w) as f64);
+                let v: f64 = truth
+                    .iter()
+                    .map(|&(cx, cy)| {
+                        200.0 * (-((x - cx).powi(2) + (y - cy).powi(2)) / (2.0 * 2.25)).exp()
+                    })
+                    .sum();
+                (10.0 + v).min(255.0).round() as u8
+            })
+            .collect();
+        let cut_only = DetectConfig {
+            fit_overlaps: false,
+            ..Default::default()
+        };
+        let error = |d: &[Detection]| {
+            truth
+                .iter()
+                .map(|&(tx, ty)| {
+                    d.iter()
+                        .map(|d| (d.centroid.x - tx).hypot(d.centroid.y - ty))
+                        .fold(f64::MAX, f64::min)
+                })
+                .fold(0.0, f64::max)
+        };
+        let cut = detect(w, &img, &cut_only);
+        assert_eq!(cut.len(), 2, "{cut:?}");
+        assert!(cut.iter().all(|d| d.separation == Separation::Cut));
+        let fitted = detect(w, &img, &DetectConfig::default());
+        assert_eq!(fitted.len(), 2, "{fitted:?}");
+        assert!(
+            fitted.iter().all(|d| d.separation == Separation::Fitted),
+            "{fitted:?}"
+        );
+        // The cut is off by 0.1 px here, the fit by under 0.01 px.
+        assert!(
+            error(&fitted) < 0.02 && error(&fitted) < error(&cut) / 5.0,
+            "fitted {fitted:?}, cut {cut:?}"
         );
     }
 

@@ -4,6 +4,7 @@
 //! -> `stereo` (left <-> right) -> triangulate (geometry) -> `kinematics` (moving least squares),
 //! all driven by the [`Pipeline`] state machine one [`StereoFrame`] at a time.
 
+pub mod blobs;
 pub mod detect;
 pub mod kinematics;
 pub mod link;

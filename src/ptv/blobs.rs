@@ -1,0 +1,327 @@
+//! Overlapping particle images separated by fitting: a region holding several particles is
+//! modelled as a sum of isotropic Gaussian spots on a constant floor and fitted by
+//! Levenberg-Marquardt least squares. Unlike cutting the region's pixels between the particles,
+//! the fit lets each spot's tail run under its neighbour, so the centres are not pulled together.
+
+use nalgebra::{SMatrix, SVector};
+
+/// One spot: `amplitude * exp(-(r^2 / (2 sigma^2))^flatness)` around (x, y), pixels and grey
+/// levels. Flatness 1 is a Gaussian (a small particle blurred by optics); larger values give the
+/// flat top of a disc image wider than the blur.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Spot {
+    pub x: f64,
+    pub y: f64,
+    pub amplitude: f64,
+    pub sigma: f64,
+    pub flatness: f64,
+}
+
+/// Parameters per spot in the fit vector, after the floor.
+const PER_SPOT: usize = 5;
+const MAX_FLATNESS: f64 = 4.0;
+const MAX_ITERATIONS: usize = 15;
+/// A step that moves no centre by more than this ends the fit: far below the 0.01 px that
+/// centroids are good to.
+const CONVERGED_STEP_PX: f64 = 1e-3;
+
+/// Fits `seeds.len()` spots plus a constant floor to `samples` (x, y, value) starting from the
+/// seeds. `None` when the fit does not converge, or converges to something that is not a set of
+/// distinct spots near their seeds (a spot gone flat, wide, or merged into its neighbour).
+pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit> {
+    // Fixed sizes let the compiler unroll the per-pixel work; regions of more than four
+    // particles are not fitted.
+    let (params, cost) = match seeds.len() {
+        1 => levenberg_marquardt::<6>(samples, seeds)?,
+        2 => levenberg_marquardt::<11>(samples, seeds)?,
+        3 => levenberg_marquardt::<16>(samples, seeds)?,
+        4 => levenberg_marquardt::<21>(samples, seeds)?,
+        _ => return None,
+    };
+    let spots: Vec<Spot> = (0..seeds.len())
+        .map(|k| Spot {
+            x: params[1 + PER_SPOT * k],
+            y: params[2 + PER_SPOT * k],
+            amplitude: params[3 + PER_SPOT * k],
+            sigma: params[4 + PER_SPOT * k].abs(),
+            flatness: params[5 + PER_SPOT * k],
+        })
+        .collect();
+    let plausible = spots.iter().zip(seeds).all(|(s, seed)| {
+        s.amplitude > 0.0
+            && s.sigma > 0.3
+            && s.sigma < 3.0 * seed.sigma
+            && (s.x - seed.x).hypot(s.y - seed.y) < 2.0 * seed.sigma
+    });
+    let distinct = spots.iter().enumerate().all(|(i, a)| {
+        spots[i + 1..]
+            .iter()
+            .all(|b| (a.x - b.x).hypot(a.y - b.y) > 0.5 * (a.sigma + b.sigma))
+    });
+    let rms_residual = (cost / samples.len() as f64).sqrt();
+    (plausible && distinct).then_some(SpotFit {
+        spots,
+        rms_residual,
+    })
+}
+
+/// Fitted spots and how far the samples stray from them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SpotFit {
+    pub spots: Vec<Spot>,
+    /// Root-mean-square difference between the samples and the fitted model, grey levels.
+    pub rms_residual: f64,
+}
+
+/// A fit whose residual exceeds this fraction of its weakest spot's amplitude has missed
+/// something (a third particle, a spot that is not round): on the synthetic scenes, fits above
+/// 3-5 % were the ones off by 0.5-1 px.
+const MAX_RELATIVE_RESIDUAL: f64 = 0.05;
+
+/// Spots closer than this multiple of the sum of their half-widths (at half maximum) share so
+/// much light that their centres trade off against each other: measured on the synthetic
+/// scenes, admitting them doubled the out-of-plane error of the vectors they gave.
+const MIN_SEPARATION_IN_HALF_WIDTHS: f64 = 1.0;
+
+impl SpotFit {
+    /// Whether the fitted centres are good for measuring: the model explains the pixels and the
+    /// spots are far enough apart that each centre is set by its own light.
+    pub fn is_trustworthy(&self) -> bool {
+        let weakest = self
+            .spots
+            .iter()
+            .map(|s| s.amplitude)
+            .fold(f64::MAX, f64::min);
+        let apart = self.spots.iter().enumerate().all(|(i, a)| {
+            self.spots[i + 1..].iter().all(|b| {
+                (a.x - b.x).hypot(a.y - b.y)
+                    > MIN_SEPARATION_IN_HALF_WIDTHS * (a.half_width() + b.half_width())
+            })
+        });
+        self.rms_residual < MAX_RELATIVE_RESIDUAL * weakest && apart
+    }
+}
+
+impl Spot {
+    /// Distance from the centre at which the spot falls to half its amplitude, pixels.
+    pub fn half_width(&self) -> f64 {
+        self.sigma * std::f64::consts::SQRT_2 * std::f64::consts::LN_2.powf(0.5 / self.flatness)
+    }
+}
+
+/// The floor and each spot's parameters, and the sum of squared residuals, once converged.
+fn levenberg_marquardt<const N: usize>(
+    samples: &[(f64, f64, f64)],
+    seeds: &[Spot],
+) -> Option<(Vec<f64>, f64)> {
+    if samples.len() <= N {
+        return None;
+    }
+    let floor = samples
+        .iter()
+        .map(|s| s.2)
+        .fold(f64::MAX, f64::min)
+        .max(0.0);
+    let mut params = SVector::<f64, N>::from_fn(|i, _| {
+        if i == 0 {
+            return floor;
+        }
+        let s = &seeds[(i - 1) / PER_SPOT];
+        [s.x, s.y, s.amplitude, s.sigma, s.flatness][(i - 1) % PER_SPOT]
+    });
+    let mut current = evaluate(samples, &params);
+    let mut damping = 1e-3;
+    for _ in 0..MAX_ITERATIONS {
+        let mut damped = current.normal;
+        for i in 0..N {
+            damped[(i, i)] += damping * current.normal[(i, i)].max(1e-12);
+        }
+        let Some(step) = damped.cholesky().map(|c| c.solve(&current.gradient)) else {
+            damping *= 10.0;
+            continue;
+        };
+        let mut trial = params + step;
+        for k in 0..seeds.len() {
+            let f = &mut trial[5 + PER_SPOT * k];
+            *f = f.clamp(1.0, MAX_FLATNESS);
+        }
+        // One pass gives the trial's cost and, should it be taken, the next normal equations.
+        let next = evaluate(samples, &trial);
+        if next.cost.is_finite() && next.cost <= current.cost {
+            let moved = (0..seeds.len())
+                .map(|k| step[1 + PER_SPOT * k].abs() + step[2 + PER_SPOT * k].abs())
+                .fold(0.0, f64::max);
+            params = trial;
+            current = next;
+            damping = (damping / 3.0).max(1e-9);
+            if moved < CONVERGED_STEP_PX {
+                return Some((params.iter().copied().collect(), current.cost));
+            }
+        } else {
+            damping *= 4.0;
+            if damping > 1e8 {
+                return None;
+            }
+        }
+    }
+    None
+}
+
+/// The sum of squared residuals at some parameters, with the Gauss-Newton normal equations
+/// there (`J^T J` and `J^T r`).
+struct Evaluation<const N: usize> {
+    cost: f64,
+    normal: SMatrix<f64, N, N>,
+    gradient: SVector<f64, N>,
+}
+
+/// Beyond this `q = r^2 / (2 sigma^2)` a spot contributes under `exp(-20)` of its amplitude.
+const NEGLIGIBLE_Q: f64 = 20.0;
+
+fn evaluate<const N: usize>(
+    samples: &[(f64, f64, f64)],
+    params: &SVector<f64, N>,
+) -> Evaluation<N> {
+    let spots = (N - 1) / PER_SPOT;
+    let mut normal = SMatrix::<f64, N, N>::zeros();
+    let mut gradient = SVector::<f64, N>::zeros();
+    let mut cost = 0.0;
+    let mut row = [0.0; N];
+    row[0] = 1.0;
+    for &(x, y, v) in samples {
+        let mut value = params[0];
+        for k in 0..spots {
+            let base = 1 + PER_SPOT * k;
+            let (cx, cy, a, s, p) = (
+                params[base],
+                params[base + 1],
+                params[base + 2],
+                params[base + 3],
+                params[base + 4],
+            );
+            let (dx, dy) = (x - cx, y - cy);
+            let s2 = s * s;
+            let q = (dx * dx + dy * dy) / (2.0 * s2);
+            let derivatives = if q > NEGLIGIBLE_Q {
+                [0.0; PER_SPOT]
+            } else if q > 0.0 {
+                // q^p through one logarithm, which the flatness derivative needs anyway; in
+                // single precision, twice as fast and far finer than the pixels' noise.
+                let ln_q = (q as f32).ln();
+                let qp = f64::from((p as f32 * ln_q).exp());
+                let g = f64::from((-qp as f32).exp());
+                let ln_q = f64::from(ln_q);
+                let agp = a * g * p * qp / q;
+                value += a * g;
+                [
+                    agp * dx / s2,
+                    agp * dy / s2,
+                    g,
+                    agp * 2.0 * q / s,
+                    -a * g * qp * ln_q,
+                ]
+            } else {
+                // At the centre: g = 1 and every derivative but the amplitude's vanishes (p >= 1).
+                value += a;
+                [0.0, 0.0, 1.0, 0.0, 0.0]
+            };
+            row[base..base + PER_SPOT].copy_from_slice(&derivatives);
+        }
+        let residual = v - value;
+        cost += residual * residual;
+        let jacobian_row = SVector::<f64, N>::from(row);
+        gradient += jacobian_row * residual;
+        normal.syger(1.0, &jacobian_row, &jacobian_row, 1.0);
+    }
+    // syger writes the lower triangle only.
+    normal.fill_upper_triangle_with_lower_triangle();
+    Evaluation {
+        cost,
+        normal,
+        gradient,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spot(x: f64, y: f64, amplitude: f64, sigma: f64, flatness: f64) -> Spot {
+        Spot {
+            x,
+            y,
+            amplitude,
+            sigma,
+            flatness,
+        }
+    }
+
+    /// The model itself, sampled on a square of pixels.
+    fn render(spots: &[Spot], floor: f64, size: usize) -> Vec<(f64, f64, f64)> {
+        (0..size * size)
+            .map(|i| {
+                let (x, y) = ((i % size) as f64, (i / size) as f64);
+                let v: f64 = spots
+                    .iter()
+                    .map(|s| {
+                        let q = ((x - s.x).powi(2) + (y - s.y).powi(2)) / (2.0 * s.sigma * s.sigma);
+                        s.amplitude * (-q.powf(s.flatness)).exp()
+                    })
+                    .sum();
+                (x, y, floor + v)
+            })
+            .collect()
+    }
+
+    /// Seeds as a 2-means cut gives them: pulled towards each other by most of a pixel.
+    fn cut_seeds(truth: &[Spot; 2]) -> [Spot; 2] {
+        [
+            spot(truth[0].x + 0.7, truth[0].y + 0.2, 100.0, 2.2, 1.2),
+            spot(truth[1].x - 0.8, truth[1].y - 0.2, 100.0, 2.2, 1.2),
+        ]
+    }
+
+    #[test]
+    fn overlapping_spots_are_recovered_where_a_cut_would_pull_them_together() {
+        let gaussians = [
+            spot(9.3, 10.2, 120.0, 1.8, 1.0),
+            spot(13.6, 11.1, 80.0, 1.6, 1.0),
+        ];
+        // Flat-topped, as a disc wider than the blur images.
+        let discs = [
+            spot(9.1, 10.3, 150.0, 2.6, 2.5),
+            spot(17.0, 11.0, 150.0, 2.6, 2.5),
+        ];
+        for truth in [gaussians, discs] {
+            let fitted = fit_spots(&render(&truth, 3.0, 26), &cut_seeds(&truth)).expect("fit");
+            for (f, t) in fitted.spots.iter().zip(&truth) {
+                assert!((f.x - t.x).hypot(f.y - t.y) < 1e-2, "{f:?} vs {t:?}");
+            }
+            assert!(fitted.is_trustworthy(), "{fitted:?}");
+        }
+    }
+
+    #[test]
+    fn spots_closer_than_their_half_widths_are_fitted_but_not_trusted() {
+        // 3.4 px apart, half-widths 2.1 and 1.9 px.
+        let truth = [
+            spot(9.3, 10.2, 120.0, 1.8, 1.0),
+            spot(12.6, 11.1, 80.0, 1.6, 1.0),
+        ];
+        let fitted = fit_spots(&render(&truth, 3.0, 24), &cut_seeds(&truth)).expect("fit");
+        for (f, t) in fitted.spots.iter().zip(&truth) {
+            assert!((f.x - t.x).hypot(f.y - t.y) < 1e-2, "{f:?} vs {t:?}");
+        }
+        assert!(!fitted.is_trustworthy(), "{fitted:?}");
+    }
+
+    #[test]
+    fn one_spot_is_not_fitted_as_two() {
+        let samples = render(&[spot(10.0, 10.0, 100.0, 2.0, 1.0)], 0.0, 20);
+        let seeds = [
+            spot(9.0, 10.0, 60.0, 2.0, 1.0),
+            spot(11.0, 10.0, 60.0, 2.0, 1.0),
+        ];
+        assert!(fit_spots(&samples, &seeds).is_none_or(|f| !f.is_trustworthy()));
+    }
+}
