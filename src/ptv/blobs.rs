@@ -1,6 +1,6 @@
 //! Overlapping particle images separated by fitting: a region holding several particles is
-//! modelled as a sum of isotropic Gaussian spots on a constant floor and fitted by
-//! Levenberg-Marquardt least squares. Unlike cutting the region's pixels between the particles,
+//! modelled as a sum of round spots (Gaussian to flat-topped, see [`Spot`]) on a constant floor
+//! and fitted by Levenberg-Marquardt least squares. Unlike cutting the region's pixels between the particles,
 //! the fit lets each spot's tail run under its neighbour, so the centres are not pulled together.
 
 use nalgebra::{SMatrix, SVector};
@@ -26,8 +26,9 @@ const MAX_ITERATIONS: usize = 15;
 const CONVERGED_STEP_PX: f64 = 1e-3;
 
 /// Fits `seeds.len()` spots plus a constant floor to `samples` (x, y, value) starting from the
-/// seeds. `None` when the fit does not converge, or converges to something that is not a set of
-/// distinct spots near their seeds (a spot gone flat, wide, or merged into its neighbour).
+/// seeds. `None` when the fit does not converge, or a spot ends implausibly (gone flat or
+/// negative, too narrow or wide, or far from its seed); spots that merged into each other are
+/// judged by [`SpotFit::is_trustworthy`].
 pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit> {
     // Fixed sizes let the compiler unroll the per-pixel work; regions of more than four
     // particles are not fitted.
@@ -53,13 +54,8 @@ pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit>
             && s.sigma < 3.0 * seed.sigma
             && (s.x - seed.x).hypot(s.y - seed.y) < 2.0 * seed.sigma
     });
-    let distinct = spots.iter().enumerate().all(|(i, a)| {
-        spots[i + 1..]
-            .iter()
-            .all(|b| (a.x - b.x).hypot(a.y - b.y) > 0.5 * (a.sigma + b.sigma))
-    });
     let rms_residual = (cost / samples.len() as f64).sqrt();
-    (plausible && distinct).then_some(SpotFit {
+    plausible.then_some(SpotFit {
         spots,
         rms_residual,
     })

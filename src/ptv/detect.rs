@@ -652,16 +652,12 @@ impl Detector {
         }
         let seeds: Vec<Spot> = parts
             .iter()
-            .map(|d| {
-                let i = (d.centroid.y.round() as usize).min(h - 1) * w
-                    + (d.centroid.x.round() as usize).min(w - 1);
-                Spot {
-                    x: d.centroid.x,
-                    y: d.centroid.y,
-                    amplitude: self.blurred[i] as f64 / 256.0,
-                    sigma: (d.diameter_px / 3.5).max(0.8),
-                    flatness: 1.2,
-                }
+            .map(|d| Spot {
+                x: d.centroid.x,
+                y: d.centroid.y,
+                amplitude: self.blurred[nearest_pixel(image, d.centroid)] as f64 / 256.0,
+                sigma: (d.diameter_px / 3.5).max(0.8),
+                flatness: 1.2,
             })
             .collect();
         fit_spots(&samples, &seeds)
@@ -669,9 +665,7 @@ impl Detector {
 
     /// Raw intensity above the background model at a centroid (bilinear, clamped to the image).
     fn brightness_at(&self, image: ImageView<'_>, centroid: PixelPoint) -> f64 {
-        let nearest = (centroid.y.round() as usize).min(image.height - 1) * image.width
-            + (centroid.x.round() as usize).min(image.width - 1);
-        (image.bilinear(centroid) - self.background_at(nearest)).max(0.0)
+        (image.bilinear(centroid) - self.background_at(nearest_pixel(image, centroid))).max(0.0)
     }
 
     /// Splits a region in two along its long axis.
@@ -832,6 +826,12 @@ impl Detector {
         let seeds = kept.iter().map(|k| (k.x as f64, k.y as f64)).collect();
         Some(self.k_means(image, config, region, seeds))
     }
+}
+
+/// Index of the pixel nearest a point of the image (clamped to the image).
+fn nearest_pixel(image: ImageView<'_>, at: PixelPoint) -> usize {
+    (at.y.round() as usize).min(image.height - 1) * image.width
+        + (at.x.round() as usize).min(image.width - 1)
 }
 
 /// The next pixel at or after `from` marked 1 (foreground, unlabelled). Skips 16 pixels at a time

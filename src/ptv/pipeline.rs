@@ -724,7 +724,13 @@ impl Pipeline {
         let centre = track.samples.iter().find(|s| s.seq == centre_seq)?;
         let (mut windows, mut any_supported) =
             self.candidate_windows(track, centre, Separation::Clear);
-        if !any_supported {
+        let fitted_in_window = || {
+            track
+                .samples
+                .iter()
+                .any(|s| s.separation == Separation::Fitted && s.seq.abs_diff(centre_seq) <= m)
+        };
+        if !any_supported && fitted_in_window() {
             (windows, any_supported) = self.candidate_windows(track, centre, Separation::Fitted);
         }
         if windows.is_empty() {
