@@ -184,6 +184,15 @@ impl RunTotals {
             } else {
                 String::new()
             };
+        let rejoins = if config.link.rejoin_frames > 0 {
+            format!(
+                "; broken 3D tracks rejoined across up to {} missing frames ({:.1} per frame)",
+                config.link.rejoin_frames,
+                ratio(self.counts.rejoined, self.frames)
+            )
+        } else {
+            String::new()
+        };
         let windows = if shortest_window < window {
             format!(
                 "{shortest_window} to {window} frames (narrower where a particle crosses {} px \
@@ -229,8 +238,8 @@ impl RunTotals {
             String::new()
         };
         let settled = format!(
-            "stereo search {search}; linking box +-{box_px} px{first_steps}; velocity window \
-             {windows}{fits}; threshold {} grey levels above the local mean{noisy}{background}",
+            "stereo search {search}; linking box +-{box_px} px{first_steps}{rejoins}; velocity \
+             window {windows}{fits}; threshold {} grey levels above the local mean{noisy}{background}",
             -config.detect.contrast_c
         );
         let summary = format!(

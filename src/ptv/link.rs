@@ -63,6 +63,17 @@ pub struct LinkConfig {
     /// consensus, rectified pixels (with `predict_new_from_neighbours`; 0 turns consensus off).
     /// Well above the fastest flow a 640-pixel view can follow for a velocity window.
     pub max_displacement_px: f64,
+    /// Frames a 3D track may go without a stereo pair and still be continued by a new one (a
+    /// new track in either camera, or a new partner): the new pair must lie where the track's
+    /// recent path in the world predicts, within `rejoin_tolerance_px` across the line of sight
+    /// and `rejoin_tolerance_sigmas` depth-noise sigmas along it. A per-camera track breaks
+    /// where particles cross or crowd; without this its 3D track, and the velocity window,
+    /// ended there. 0 keeps a 3D track only while both camera tracks go on (the method).
+    pub rejoin_frames: u32,
+    /// How far across the line of sight a rejoining pair may lie from the prediction, pixels.
+    pub rejoin_tolerance_px: f64,
+    /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
+    pub rejoin_tolerance_sigmas: f64,
 }
 
 impl Default for LinkConfig {
@@ -78,6 +89,9 @@ impl Default for LinkConfig {
             max_gap_frames: 2,
             max_displacement_px: 100.0,
             fixture_frames: 10,
+            rejoin_frames: 2,
+            rejoin_tolerance_px: 3.0,
+            rejoin_tolerance_sigmas: 12.0,
         }
     }
 }
@@ -356,7 +370,13 @@ impl CameraLinker {
                 y: last.y + dy * frames,
             };
         }
-        if let Some((dx, dy)) = first_steps.and_then(|f| f.consensus_step(t, last, config)) {
+        if let Some((dx, dy)) = first_steps.and_then(|f| {
+            f.consensus_step(t, last, config).or_else(|| {
+                (track.missed == 0)
+                    .then(|| f.three_frame_step(last, config))
+                    .flatten()
+            })
+        }) {
             return RectPoint {
                 x: last.x + dx,
                 y: last.y + dy,
@@ -402,6 +422,8 @@ impl CameraLinker {
 struct FirstSteps {
     features: PointGrid,
     seen_last: PointGrid,
+    /// Where lone detections of the frame before last were: tracks seen once, then not linked.
+    lone_before: PointGrid,
     density_per_px2: f64,
 }
 
@@ -418,6 +440,14 @@ impl FirstSteps {
                     .iter()
                     .enumerate()
                     .filter(|(_, t)| t.missed == 0)
+                    .map(|(i, t)| (t.last.rect, i)),
+                CELL_PX,
+            ),
+            lone_before: PointGrid::new(
+                tracks
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, t)| t.missed == 1 && t.age == 1)
                     .map(|(i, t)| (t.last.rect, i)),
                 CELL_PX,
             ),
@@ -465,6 +495,41 @@ impl FirstSteps {
             let chance = binomial_tail(k, votes, by_chance_per_neighbour);
             if chance < CHANCE && best.is_none_or(|(b, _)| chance < b) {
                 best = Some((chance, (dx, dy)));
+            }
+        }
+        best.map(|(_, d)| d)
+    }
+}
+
+impl FirstSteps {
+    /// A new track's first step from three frames, where its neighbours cannot tell it (they
+    /// move differently, as in a vortex, or none is established yet): of the lone detections of
+    /// the frame before last within `max_displacement_px`, the one that, with this track's
+    /// detection, predicts a detection in this frame best at constant velocity (within the
+    /// consensus tolerance). Without it a particle moving more than the linking box per frame
+    /// through a rotating flow starts a new track every frame.
+    fn three_frame_step(&self, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
+        let reach = config.max_displacement_px;
+        let mut best: Option<(f64, (f64, f64))> = None;
+        for (before, _) in self.lone_before.near(last.x, last.y, reach) {
+            let (dx, dy) = (last.x - before.x, last.y - before.y);
+            let step = dx.hypot(dy);
+            if step > reach {
+                continue;
+            }
+            let tolerance = (0.3 * step).max(2.0);
+            let (x, y) = (last.x + dx, last.y + dy);
+            let miss = self
+                .features
+                .near(x, y, tolerance)
+                .map(|(c, _)| (c.x - x).hypot(c.y - y))
+                .filter(|&m| m <= tolerance)
+                .min_by(f64::total_cmp);
+            if let Some(miss) = miss {
+                let score = miss / tolerance;
+                if best.is_none_or(|(b, _)| score < b) {
+                    best = Some((score, (dx, dy)));
+                }
             }
         }
         best.map(|(_, d)| d)
@@ -559,7 +624,12 @@ impl PointGrid {
     }
 
     /// Points in the cells overlapping the box `x +- half`, `y +- half` (a superset of the box).
-    fn near(&self, x: f64, y: f64, half: f64) -> impl Iterator<Item = &(RectPoint, usize)> {
+    pub(crate) fn near(
+        &self,
+        x: f64,
+        y: f64,
+        half: f64,
+    ) -> impl Iterator<Item = &(RectPoint, usize)> {
         let (c0, r0) = self.cell_of(x - half, y - half);
         let (c1, r1) = self.cell_of(x + half, y + half);
         (r0..=r1).flat_map(move |r| {
@@ -855,6 +925,49 @@ mod tests {
         assert_eq!(first, Some(config.fixture_frames as usize), "{fixed:?}");
         assert!(fixed[first.unwrap_or(0)..].iter().all(|f| f.0));
         assert!(fixed.iter().all(|f| !f.1));
+    }
+
+    /// Particles turning 0.25 rad per frame around a centre, 24-36 px per frame, each in a
+    /// different direction, so no neighbour consensus forms: the third frame's detection,
+    /// predicted from the first two at constant velocity, links them from then on. Without
+    /// learnt first steps some still start a new track every frame.
+    #[test]
+    fn turning_particles_link_from_their_third_frame() {
+        let config = LinkConfig::default();
+        let omega = 0.25;
+        let radii = [100.0, 120.0, 144.0];
+        let phases = [0.0, 2.1, 4.2];
+        let at = |n: f64| -> Vec<Feature> {
+            radii
+                .iter()
+                .zip(phases)
+                .map(|(r, p)| feature(r * (p + omega * n).cos(), r * (p + omega * n).sin()))
+                .collect()
+        };
+        let mut linker = CameraLinker::new();
+        let mut frames: Vec<Vec<LinkedFeature>> = Vec::new();
+        for n in 0..6 {
+            frames.push(linker.push(&at(f64::from(n)), SCALE, &config));
+        }
+        assert!(frames[1].iter().all(|f| f.age == 1), "no step known yet");
+        for (n, frame) in frames.iter().enumerate().skip(2) {
+            assert_eq!(
+                ids(frame),
+                ids(&frames[1]),
+                "frame {n} keeps the identities"
+            );
+        }
+        assert!(frames[5].iter().all(|f| f.age == 5), "{:?}", frames[5]);
+        let off = LinkConfig {
+            max_displacement_px: 0.0,
+            ..config
+        };
+        let mut plain = CameraLinker::new();
+        let last = (0..6)
+            .map(|n| plain.push(&at(f64::from(n)), SCALE, &off))
+            .last()
+            .expect("six frames");
+        assert!(last.iter().any(|f| f.age == 1), "{last:?}");
     }
 
     #[test]

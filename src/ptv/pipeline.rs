@@ -9,11 +9,12 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::detect::{DetectConfig, Detection, Detector, Separation};
-use super::kinematics::{fit_adaptive, fit_line, FitChoice, QuadraticWindow};
+use super::kinematics::{fit_adaptive, fit_line, fit_quadratic, FitChoice, QuadraticWindow};
+use super::link::PointGrid;
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use super::stereo::{match_stereo, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
-use crate::geometry::{CalibrationError, PixelPoint, Rectification, StereoRig};
+use crate::geometry::{CalibrationError, PixelPoint, RectPoint, Rectification, StereoRig};
 
 /// Velocity estimation parameters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -84,6 +85,7 @@ impl PipelineConfig {
         c.link.assignment = Assignment::PerParticle;
         c.link.predict_new_from_neighbours = false;
         c.link.max_gap_frames = 0;
+        c.link.rejoin_frames = 0;
         c.velocity.max_missing_per_side = 0;
         c.stereo.assignment = Assignment::PerParticle;
         c.stereo.pair_memory = 0.0;
@@ -136,6 +138,11 @@ impl PipelineConfig {
                 self.velocity.min_window_travel_px,
             ),
             ("link.max_displacement_px", self.link.max_displacement_px),
+            ("link.rejoin_tolerance_px", self.link.rejoin_tolerance_px),
+            (
+                "link.rejoin_tolerance_sigmas",
+                self.link.rejoin_tolerance_sigmas,
+            ),
             ("detect.noise_sigmas", self.detect.noise_sigmas),
             (
                 "detect.background_rise_per_frame",
@@ -263,6 +270,8 @@ pub struct FrameStats {
     /// quadratic on +-M: a quadratic on a narrower window, or a cubic.
     pub fit_components_narrower: usize,
     pub fit_components_cubic: usize,
+    /// New stereo pairs that continued a broken 3D track (`link.rejoin_frames`).
+    pub rejoined: usize,
     /// Detections (both cameras) taken for fixtures of the room or sensor and not matched.
     pub fixtures: usize,
     /// Images (0 to 2) thresholded above `contrast_c` because of their noise.
@@ -285,6 +294,7 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.left_with_candidates += s.left_with_candidates;
         self.fit_components_narrower += s.fit_components_narrower;
         self.fit_components_cubic += s.fit_components_cubic;
+        self.rejoined += s.rejoined;
         self.fixtures += s.fixtures;
         self.noisy_images += s.noisy_images;
     }
@@ -336,6 +346,18 @@ struct Sample {
     left_rect: crate::geometry::RectPoint,
     /// The left camera's centre when it did: the line of sight, along which noise is largest.
     camera_in_world: Point3<f64>,
+}
+
+/// Where a 3D track without a pair this frame came from, so it can go back if no new pair
+/// rejoins it.
+#[derive(Debug, Clone, Copy)]
+enum Orphan {
+    /// Still live under this left track id (coasting through a gap).
+    Coasting(u64),
+    /// Its left track (this id) paired with a new partner this frame.
+    Replaced(u64),
+    /// Already retired.
+    Retired,
 }
 
 #[derive(Debug, Clone)]
@@ -516,6 +538,10 @@ impl Pipeline {
         let max_gap = u64::from(self.config.link.max_gap_frames);
         let m = m as u64;
         let mut tracks = BTreeMap::new();
+        // Pairs that no live 3D track continues, and 3D tracks that no pair continued this
+        // frame: the first may rejoin the second.
+        let mut births: Vec<(u64, u64, Sample, MatchedPoint)> = Vec::new();
+        let mut orphans: Vec<(Orphan, Track3d)> = Vec::new();
         for &(li, ri) in &pairs {
             let (l, r): (&LinkedFeature, &LinkedFeature) = (&left[li], &right[ri]);
             let Some(t) = rect.triangulate(l.feature.rect, r.feature.rect) else {
@@ -531,43 +557,98 @@ impl Pipeline {
                 left_rect: l.feature.rect,
                 camera_in_world: world_from_rig * Point3::origin(),
             };
-            let mut track = match self.tracks.remove(&l.track_id) {
-                // Without track-consistent pairing (the method) a left track keeps its 3D track
-                // whatever its partner; with it, a new partner means a new particle.
-                Some(old)
-                    if old.right_track == r.track_id || self.config.stereo.pair_memory == 0.0 =>
-                {
-                    old
-                }
-                _ => {
-                    self.next_track_id += 1;
-                    Track3d {
-                        id: self.next_track_id,
-                        right_track: r.track_id,
-                        samples: VecDeque::new(),
-                    }
-                }
-            };
-            track.right_track = r.track_id;
-            out.points.push(MatchedPoint {
-                track_id: track.id,
+            let point = MatchedPoint {
+                track_id: 0,
                 point_in_world: sample.point_in_world,
                 left_px: left_raw[li].centroid,
                 right_px: right_raw[ri].centroid,
                 depth_m: t.depth_m,
-            });
-            track.samples.push_back(sample);
-            let oldest = seq.saturating_sub(2 * m);
-            while track.samples.front().is_some_and(|s| s.seq < oldest) {
-                track.samples.pop_front();
+            };
+            match self.tracks.remove(&l.track_id) {
+                // Without track-consistent pairing (the method) a left track keeps its 3D track
+                // whatever its partner; with it, a new partner means a new particle.
+                Some(mut track)
+                    if track.right_track == r.track_id || self.config.stereo.pair_memory == 0.0 =>
+                {
+                    track.right_track = r.track_id;
+                    out.points.push(MatchedPoint {
+                        track_id: track.id,
+                        ..point
+                    });
+                    Self::push_sample(&mut track, sample, m);
+                    tracks.insert(l.track_id, track);
+                }
+                dropped => {
+                    if let Some(track) = dropped {
+                        orphans.push((Orphan::Replaced(l.track_id), track));
+                    }
+                    births.push((l.track_id, r.track_id, sample, point));
+                }
             }
-            tracks.insert(l.track_id, track);
+        }
+        let rejoin_frames = u64::from(self.config.link.rejoin_frames);
+        if rejoin_frames > 0 && !births.is_empty() {
+            for (left_track, track) in std::mem::take(&mut self.tracks) {
+                if seq - Self::last_seq(&track) <= rejoin_frames + 1 {
+                    orphans.push((Orphan::Coasting(left_track), track));
+                } else {
+                    self.tracks.insert(left_track, track);
+                }
+            }
+            let (recent, old): (Vec<Track3d>, Vec<Track3d>) = std::mem::take(&mut self.retired)
+                .into_iter()
+                .partition(|t| seq - Self::last_seq(t) <= rejoin_frames + 1);
+            self.retired = old;
+            orphans.extend(recent.into_iter().map(|t| (Orphan::Retired, t)));
+        }
+        let rejoined = self.rejoin(&births, &orphans, frame.t_s);
+        out.stats.rejoined = rejoined.iter().flatten().count();
+        let mut orphans: Vec<Option<(Orphan, Track3d)>> = orphans.into_iter().map(Some).collect();
+        for (birth, (left_track, right_track, sample, point)) in births.into_iter().enumerate() {
+            let joined = rejoined[birth].and_then(|(o, before)| {
+                let (_, mut track) = orphans[o].take()?;
+                // A track of one sample rejoined through the one before it: the three are one
+                // particle, so the earlier sample leads the track.
+                if let Some((_, earlier)) = before.and_then(|a| orphans[a].take()) {
+                    for s in earlier.samples.into_iter().rev() {
+                        track.samples.push_front(s);
+                    }
+                }
+                Some(track)
+            });
+            let mut track = match joined {
+                Some(track) => track,
+                None => {
+                    self.next_track_id += 1;
+                    Track3d {
+                        id: self.next_track_id,
+                        right_track,
+                        samples: VecDeque::new(),
+                    }
+                }
+            };
+            track.right_track = right_track;
+            out.points.push(MatchedPoint {
+                track_id: track.id,
+                ..point
+            });
+            Self::push_sample(&mut track, sample, m);
+            tracks.insert(left_track, track);
+        }
+        for (kind, track) in orphans.into_iter().flatten() {
+            match kind {
+                Orphan::Coasting(left_track) => {
+                    self.tracks.insert(left_track, track);
+                }
+                Orphan::Replaced(_) | Orphan::Retired => self.retired.push(track),
+            }
         }
         // A 3D track unseen this frame survives a gap as long as its left track may coast; after
         // that it is retired, and kept M frames for the centred vectors its last samples still
         // give (with a window narrower than M near a track's end).
         for (left_track, track) in std::mem::take(&mut self.tracks) {
             if tracks.contains_key(&left_track) {
+                self.retired.push(track);
                 continue;
             }
             if seq - Self::last_seq(&track) <= max_gap {
@@ -694,6 +775,176 @@ impl Pipeline {
             velocity_in_world: fit.velocity,
             rms_residual_m: fit.rms_residual,
         })
+    }
+
+    fn push_sample(track: &mut Track3d, sample: Sample, m: u64) {
+        let oldest = sample.seq.saturating_sub(2 * m);
+        track.samples.push_back(sample);
+        while track.samples.front().is_some_and(|s| s.seq < oldest) {
+            track.samples.pop_front();
+        }
+    }
+
+    /// For each new pair, the orphaned 3D track it continues, if any, and for a one-sample
+    /// orphan the one-sample orphan of the frame before that completes the path: the
+    /// continuation whose prediction the pair meets best, within the rejoin tolerances
+    /// (one-to-one, closest first).
+    fn rejoin(
+        &self,
+        births: &[(u64, u64, Sample, MatchedPoint)],
+        orphans: &[(Orphan, Track3d)],
+        t_s: f64,
+    ) -> Vec<Option<(usize, Option<usize>)>> {
+        let mut rejoined = vec![None; births.len()];
+        if births.is_empty() || orphans.is_empty() {
+            return rejoined;
+        }
+        let link = &self.config.link;
+        let focal_px = self.rectification.focal_px;
+        let disparity_sigma_px = self.config.velocity.disparity_sigma_px;
+        // What each orphan predicts: (orphan, the orphan before it, predicted world point,
+        // predicted left image point, per-frame image step).
+        let mut predictions = Vec::new();
+        let lone: Vec<(usize, &Sample)> = orphans
+            .iter()
+            .enumerate()
+            .filter_map(|(o, (_, t))| match t.samples.as_slices().0 {
+                [only] if t.samples.len() == 1 => Some((o, only)),
+                _ => None,
+            })
+            .collect();
+        let lone_grid = PointGrid::new(
+            lone.iter().map(|(o, s)| (s.left_rect, *o)),
+            link.max_displacement_px.max(16.0),
+        );
+        for (o, (_, track)) in orphans.iter().enumerate() {
+            if let Some((world, image)) = Self::predicted_position(track, t_s) {
+                let last = track.samples.back().map(|s| s.left_rect);
+                let step = last.map_or(0.0, |l| (image.x - l.x).hypot(image.y - l.y));
+                predictions.push((o, None, world, image, step));
+                continue;
+            }
+            let Some(b) = track.samples.back() else {
+                continue;
+            };
+            // Two lone samples in consecutive frames predict a third at constant velocity.
+            let reach = link.max_displacement_px;
+            for (a_rect, a) in lone_grid.near(b.left_rect.x, b.left_rect.y, reach) {
+                let Some(sample_a) = orphans[*a].1.samples.back() else {
+                    continue;
+                };
+                if sample_a.seq + 1 != b.seq
+                    || (b.left_rect.x - a_rect.x).hypot(b.left_rect.y - a_rect.y) > reach
+                {
+                    continue;
+                }
+                let ahead = (t_s - b.t_s) / (b.t_s - sample_a.t_s);
+                let world = b.point_in_world + (b.point_in_world - sample_a.point_in_world) * ahead;
+                let image = RectPoint {
+                    x: b.left_rect.x + (b.left_rect.x - a_rect.x) * ahead,
+                    y: b.left_rect.y + (b.left_rect.y - a_rect.y) * ahead,
+                };
+                let step = (b.left_rect.x - a_rect.x).hypot(b.left_rect.y - a_rect.y);
+                predictions.push((o, Some(*a), world, image, step));
+            }
+        }
+        let birth_grid = PointGrid::new(
+            births.iter().enumerate().map(|(i, b)| (b.2.left_rect, i)),
+            16.0,
+        );
+        let along_scale = |depth_m: f64| {
+            link.rejoin_tolerance_sigmas
+                * self
+                    .rectification
+                    .depth_sigma_m(depth_m, disparity_sigma_px)
+        };
+        let cost = |sample: &Sample, predicted: &Point3<f64>, across_px: f64, along_m: f64| {
+            let sight = (sample.point_in_world - sample.camera_in_world)
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::z);
+            let miss = sample.point_in_world - predicted;
+            let along = miss.dot(&sight);
+            let across = (miss.norm_squared() - along * along).max(0.0).sqrt();
+            (across * focal_px / (sample.depth_m * across_px)).powi(2) + (along / along_m).powi(2)
+        };
+        let mut candidates = Vec::new();
+        for (h, (_, _, world, image, step)) in predictions.iter().enumerate() {
+            // A prediction misses by about the change in velocity over a frame, which grows
+            // with the step (a vortex turns its particles by a fixed angle per frame).
+            let across_px = link.rejoin_tolerance_px.max(0.3 * step);
+            for (_, b) in birth_grid.near(image.x, image.y, 2.0 * across_px) {
+                let sample = &births[*b].2;
+                let c = cost(sample, world, across_px, along_scale(sample.depth_m));
+                if c <= 1.0 {
+                    candidates.push((c, *b, h));
+                }
+            }
+        }
+        // A one-sample track has no path to predict from; but where its left track went on
+        // (only the partner changed), the left camera vouches for the continuity across the
+        // line of sight, and the depth may have changed by no more than the particle moved
+        // across it.
+        for (o, (kind, track)) in orphans.iter().enumerate() {
+            let (Orphan::Replaced(left_track), [last]) = (kind, track.samples.as_slices().0) else {
+                continue;
+            };
+            let Some(b) = births.iter().position(|birth| birth.0 == *left_track) else {
+                continue;
+            };
+            let sample = &births[b].2;
+            let moved_m = (sample.left_rect.x - last.left_rect.x)
+                .hypot(sample.left_rect.y - last.left_rect.y)
+                * sample.depth_m
+                / focal_px;
+            let sight = (sample.point_in_world - sample.camera_in_world)
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::z);
+            let along = (sample.point_in_world - last.point_in_world).dot(&sight);
+            let c = (along.abs() / (along_scale(sample.depth_m) + moved_m)).powi(2);
+            if c <= 1.0 {
+                predictions.push((o, None, last.point_in_world, last.left_rect, 0.0));
+                candidates.push((c, b, predictions.len() - 1));
+            }
+        }
+        candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut taken = vec![false; orphans.len()];
+        for (_, b, h) in candidates {
+            let (o, before, ..) = predictions[h];
+            if rejoined[b].is_some() || taken[o] || before.is_some_and(|a| taken[a]) {
+                continue;
+            }
+            rejoined[b] = Some((o, before));
+            taken[o] = true;
+            if let Some(a) = before {
+                taken[a] = true;
+            }
+        }
+        rejoined
+    }
+
+    /// Where a track's last few samples put it at `t_s`, in the world and in the left image: a
+    /// quadratic through up to five of them, a line through two; `None` for a single sample.
+    fn predicted_position(track: &Track3d, t_s: f64) -> Option<(Point3<f64>, RectPoint)> {
+        let recent = track.samples.iter().rev().take(5);
+        let world: Vec<(f64, Point3<f64>)> =
+            recent.clone().map(|s| (s.t_s, s.point_in_world)).collect();
+        let image: Vec<(f64, Point3<f64>)> = recent
+            .map(|s| (s.t_s, Point3::new(s.left_rect.x, s.left_rect.y, 0.0)))
+            .collect();
+        let fit = |points: &[(f64, Point3<f64>)]| match points.len() {
+            0 | 1 => None,
+            2 => fit_line(points, t_s),
+            _ => fit_quadratic(points, t_s),
+        };
+        let world = fit(&world)?.position;
+        let image = fit(&image)?.position;
+        Some((
+            world,
+            RectPoint {
+                x: image.x,
+                y: image.y,
+            },
+        ))
     }
 
     fn last_seq(track: &Track3d) -> u64 {
