@@ -204,18 +204,29 @@ impl RunTotals {
         };
         let components = 3 * self.counts.vectors;
         let fits = if velocity.adaptive_fit && components > 0 {
+            let c = &self.counts;
+            let line = if velocity.line_past_frames > velocity.half_window_frames {
+                format!(
+                    ", {:.0} % a line from {} frames back",
+                    100.0 * ratio(c.fit_components_line, components),
+                    velocity.line_past_frames
+                )
+            } else {
+                String::new()
+            };
             format!(
                 ", fit per component: {:.0} % quadratic on the full window, {:.0} % on a \
-                 narrower one, {:.0} % cubic",
+                 narrower one, {:.0} % cubic{line}",
                 100.0
                     * ratio(
                         components
-                            - self.counts.fit_components_narrower
-                            - self.counts.fit_components_cubic,
+                            - c.fit_components_narrower
+                            - c.fit_components_cubic
+                            - c.fit_components_line,
                         components
                     ),
-                100.0 * ratio(self.counts.fit_components_narrower, components),
-                100.0 * ratio(self.counts.fit_components_cubic, components)
+                100.0 * ratio(c.fit_components_narrower, components),
+                100.0 * ratio(c.fit_components_cubic, components)
             )
         } else {
             String::new()

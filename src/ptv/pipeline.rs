@@ -45,6 +45,13 @@ pub struct VelocityConfig {
     /// frame count, and a fast particle that is in view for only a few frames still gets
     /// vectors. 0: always +-M (with `max_missing_per_side`).
     pub min_window_travel_px: f64,
+    /// With `adaptive_fit`, a straight line from this many frames before the centre to M after
+    /// it joins the candidate fits, chosen where the track's own acceleration, lost in its
+    /// noise, predicts it to be the most accurate: slow or uniform flow, where a centred window
+    /// sees mostly depth noise (creeping flow w error 9.3 % -> see README). No extra latency:
+    /// the window still ends M frames after the centre. 0 (the method), or at most M leaves it
+    /// out.
+    pub line_past_frames: usize,
 }
 
 impl Default for VelocityConfig {
@@ -57,6 +64,7 @@ impl Default for VelocityConfig {
             residual_floor_m: 0.001,
             adaptive_fit: true,
             min_window_travel_px: 60.0,
+            line_past_frames: 15,
         }
     }
 }
@@ -95,6 +103,7 @@ impl PipelineConfig {
         c.velocity.max_residual_ratio = 0.0;
         c.velocity.adaptive_fit = false;
         c.velocity.min_window_travel_px = 0.0;
+        c.velocity.line_past_frames = 0;
         c.link.max_displacement_px = 0.0;
         c.link.fixture_frames = 0;
         c.detect.noise_sigmas = 0.0;
@@ -193,6 +202,9 @@ impl PipelineConfig {
         if !(1..=100).contains(&self.velocity.half_window_frames) {
             return bad("velocity.half_window_frames", "must be in 1..=100");
         }
+        if self.velocity.line_past_frames > 300 {
+            return bad("velocity.line_past_frames", "must be at most 300");
+        }
         if self.velocity.max_missing_per_side >= self.velocity.half_window_frames {
             return bad(
                 "velocity.max_missing_per_side",
@@ -270,6 +282,8 @@ pub struct FrameStats {
     /// quadratic on +-M: a quadratic on a narrower window, or a cubic.
     pub fit_components_narrower: usize,
     pub fit_components_cubic: usize,
+    /// Velocity components fitted with a line reaching `line_past_frames` back.
+    pub fit_components_line: usize,
     /// New stereo pairs that continued a broken 3D track (`link.rejoin_frames`).
     pub rejoined: usize,
     /// Detections (both cameras) taken for fixtures of the room or sensor and not matched.
@@ -294,6 +308,7 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.left_with_candidates += s.left_with_candidates;
         self.fit_components_narrower += s.fit_components_narrower;
         self.fit_components_cubic += s.fit_components_cubic;
+        self.fit_components_line += s.fit_components_line;
         self.rejoined += s.rejoined;
         self.fixtures += s.fixtures;
         self.noisy_images += s.noisy_images;
@@ -537,6 +552,7 @@ impl Pipeline {
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
         let max_gap = u64::from(self.config.link.max_gap_frames);
         let m = m as u64;
+        let history = self.history_frames();
         let mut tracks = BTreeMap::new();
         // Pairs that no live 3D track continues, and 3D tracks that no pair continued this
         // frame: the first may rejoin the second.
@@ -575,7 +591,7 @@ impl Pipeline {
                         track_id: track.id,
                         ..point
                     });
-                    Self::push_sample(&mut track, sample, m);
+                    Self::push_sample(&mut track, sample, history);
                     tracks.insert(l.track_id, track);
                 }
                 dropped => {
@@ -632,7 +648,7 @@ impl Pipeline {
                 track_id: track.id,
                 ..point
             });
-            Self::push_sample(&mut track, sample, m);
+            Self::push_sample(&mut track, sample, history);
             tracks.insert(left_track, track);
         }
         for (kind, track) in orphans.into_iter().flatten() {
@@ -664,7 +680,9 @@ impl Pipeline {
                 Some(Ok((v, choice))) => {
                     out.vectors.push(v);
                     for c in choice.iter().flatten() {
-                        if c.order > 2 {
+                        if c.order == 1 {
+                            out.stats.fit_components_line += 1;
+                        } else if c.order > 2 {
                             out.stats.fit_components_cubic += 1;
                         } else if usize::from(c.half_window_frames) < m as usize {
                             out.stats.fit_components_narrower += 1;
@@ -777,8 +795,15 @@ impl Pipeline {
         })
     }
 
-    fn push_sample(track: &mut Track3d, sample: Sample, m: u64) {
-        let oldest = sample.seq.saturating_sub(2 * m);
+    /// Frames of a track's history kept behind its newest sample: the velocity windows reach
+    /// M before their centre (and the line `line_past_frames`), which is M behind the newest.
+    fn history_frames(&self) -> u64 {
+        let v = &self.config.velocity;
+        (v.half_window_frames + v.half_window_frames.max(v.line_past_frames)) as u64
+    }
+
+    fn push_sample(track: &mut Track3d, sample: Sample, history: u64) {
+        let oldest = sample.seq.saturating_sub(history);
         track.samples.push_back(sample);
         while track.samples.front().is_some_and(|s| s.seq < oldest) {
             track.samples.pop_front();
@@ -981,14 +1006,17 @@ impl Pipeline {
                 .iter()
                 .any(|s| s.separation == Separation::Fitted && s.seq.abs_diff(centre_seq) <= m)
         };
+        let mut worst = Separation::Clear;
         if !any_supported && fitted_in_window() {
-            (windows, any_supported) = self.candidate_windows(track, centre, Separation::Fitted);
+            worst = Separation::Fitted;
+            (windows, any_supported) = self.candidate_windows(track, centre, worst);
         }
         if windows.is_empty() {
             return any_supported.then_some(Err(()));
         }
         let (fit, choice) = if velocity.adaptive_fit {
-            let adaptive = fit_adaptive(&windows, centre.t_s)?;
+            let past = self.past_window(track, centre, worst, windows.last());
+            let adaptive = fit_adaptive(&windows, past.as_ref(), centre.t_s)?;
             (adaptive.fit, Some(adaptive.choice))
         } else {
             (windows.last()?.motion()?, None)
@@ -1064,6 +1092,40 @@ impl Pipeline {
             windows.push(window);
         }
         (windows, any_supported)
+    }
+
+    /// The window for a line reaching `line_past_frames` before `centre` and M after it, where
+    /// the track's samples (separated at least as well as `worst`) fill it (the full +-M window
+    /// `widest` is supported, and at most `max_missing_per_side` frames before the centre are
+    /// missing) and do not stray from a smooth path.
+    fn past_window(
+        &self,
+        track: &Track3d,
+        centre: &Sample,
+        worst: Separation,
+        widest: Option<&QuadraticWindow>,
+    ) -> Option<QuadraticWindow> {
+        let velocity = &self.config.velocity;
+        let (m, past) = (velocity.half_window_frames, velocity.line_past_frames);
+        if past <= m || widest?.half_window_frames < m {
+            return None;
+        }
+        let samples: Vec<&Sample> = track
+            .samples
+            .iter()
+            .filter(|s| {
+                s.separation <= worst
+                    && s.seq + past as u64 >= centre.seq
+                    && s.seq <= centre.seq + m as u64
+            })
+            .collect();
+        let before = samples.iter().filter(|s| s.seq < centre.seq).count();
+        if before + velocity.max_missing_per_side < past {
+            return None;
+        }
+        let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+        let window = QuadraticWindow::new(m, points, centre.t_s)?;
+        (!self.is_rough(&samples, &window, centre.depth_m)).then_some(window)
     }
 
     /// The narrowest half-window (2..=m) a track's samples may be fitted over: the particle must
