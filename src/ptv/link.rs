@@ -499,15 +499,14 @@ impl FirstSteps {
         }
         best.map(|(_, d)| d)
     }
-}
 
-impl FirstSteps {
     /// A new track's first step from three frames, where its neighbours cannot tell it (they
     /// move differently, as in a vortex, or none is established yet): of the lone detections of
     /// the frame before last within `max_displacement_px`, the one that, with this track's
-    /// detection, predicts a detection in this frame best at constant velocity (within the
-    /// consensus tolerance). Without it a particle moving more than the linking box per frame
-    /// through a rotating flow starts a new track every frame.
+    /// detection, predicts a detection in this frame best at constant velocity, within 0.3 of
+    /// the step (a vortex turns its particles by up to a sixth of a radian per frame, and the
+    /// prediction misses by that fraction of the step). Without it a particle moving more than
+    /// the linking box per frame through a rotating flow starts a new track every frame.
     fn three_frame_step(&self, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
         let reach = config.max_displacement_px;
         let mut best: Option<(f64, (f64, f64))> = None;
