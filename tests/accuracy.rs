@@ -115,7 +115,7 @@ fn a_vortex_links_slow_and_fast_particles_together() {
 /// A 3D track broken where one camera's track ends or changes partner is continued by the new
 /// pair that lies on its predicted path (in the image and in depth), or, for a lone sample, by
 /// the pair that completes a constant-velocity path with the sample before it. Measured on the
-/// vortex: 73.2 % measurable yield without, 75.0 % with; track purity 100 % -> 99.95 % (a
+/// vortex: 71.4 % measurable yield without, 75.0 % with; track purity 100 % -> 99.95 % (a
 /// wrong join is rare, and a rough window then drops it).
 #[test]
 fn rejoining_broken_3d_tracks_raises_the_vortex_yield() {

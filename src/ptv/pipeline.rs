@@ -821,10 +821,10 @@ impl Pipeline {
         t_s: f64,
     ) -> Vec<Option<(usize, Option<usize>)>> {
         let mut rejoined = vec![None; births.len()];
-        if births.is_empty() || orphans.is_empty() {
+        let link = &self.config.link;
+        if link.rejoin_frames == 0 || births.is_empty() || orphans.is_empty() {
             return rejoined;
         }
-        let link = &self.config.link;
         let focal_px = self.rectification.focal_px;
         let disparity_sigma_px = self.config.velocity.disparity_sigma_px;
         // What each orphan predicts: (orphan, the orphan before it, predicted world point,
