@@ -139,6 +139,12 @@ struct ActiveTrack {
     anchored_frames: u32,
 }
 
+/// How far a prediction at constant velocity may miss, as a fraction of the per-frame step: a
+/// particle turning through a vortex changes its velocity by up to this much per frame (a
+/// sixth of a radian at 5 rad/s and 30 Hz), which a first step from three frames and a rejoined
+/// 3D track must both allow for.
+pub(crate) const TURN_PER_FRAME: f64 = 0.3;
+
 /// A track that stays within this distance of one point is not moving.
 const FIXTURE_RADIUS_PX: f64 = 1.0;
 
@@ -503,10 +509,9 @@ impl FirstSteps {
     /// A new track's first step from three frames, where its neighbours cannot tell it (they
     /// move differently, as in a vortex, or none is established yet): of the lone detections of
     /// the frame before last within `max_displacement_px`, the one that, with this track's
-    /// detection, predicts a detection in this frame best at constant velocity, within 0.3 of
-    /// the step (a vortex turns its particles by up to a sixth of a radian per frame, and the
-    /// prediction misses by that fraction of the step). Without it a particle moving more than
-    /// the linking box per frame through a rotating flow starts a new track every frame.
+    /// detection, predicts a detection in this frame best at constant velocity, within
+    /// `TURN_PER_FRAME` of the step. Without it a particle moving more than the linking box per
+    /// frame through a rotating flow starts a new track every frame.
     fn three_frame_step(&self, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
         let reach = config.max_displacement_px;
         let mut best: Option<(f64, (f64, f64))> = None;
@@ -516,7 +521,7 @@ impl FirstSteps {
             if step > reach {
                 continue;
             }
-            let tolerance = (0.3 * step).max(2.0);
+            let tolerance = (TURN_PER_FRAME * step).max(2.0);
             let (x, y) = (last.x + dx, last.y + dy);
             let miss = self
                 .features

@@ -363,6 +363,26 @@ struct Sample {
     camera_in_world: Point3<f64>,
 }
 
+impl Sample {
+    /// An offset from this sample split along the left camera's line of sight (signed, where
+    /// depth noise is largest) and across it (squared length, where centroid noise is).
+    fn along_and_across_sq(&self, offset: &Vector3<f64>) -> (f64, f64) {
+        let sight = (self.point_in_world - self.camera_in_world)
+            .try_normalize(1e-12)
+            .unwrap_or_else(Vector3::z);
+        let along = offset.dot(&sight);
+        (along, (offset.norm_squared() - along * along).max(0.0))
+    }
+}
+
+/// A stereo pair that no live 3D track continued: a new track, unless it rejoins an orphan.
+struct Birth {
+    left_track: u64,
+    right_track: u64,
+    sample: Sample,
+    point: MatchedPoint,
+}
+
 /// Where a 3D track without a pair this frame came from, so it can go back if no new pair
 /// rejoins it.
 #[derive(Debug, Clone, Copy)]
@@ -556,7 +576,7 @@ impl Pipeline {
         let mut tracks = BTreeMap::new();
         // Pairs that no live 3D track continues, and 3D tracks that no pair continued this
         // frame: the first may rejoin the second.
-        let mut births: Vec<(u64, u64, Sample, MatchedPoint)> = Vec::new();
+        let mut births: Vec<Birth> = Vec::new();
         let mut orphans: Vec<(Orphan, Track3d)> = Vec::new();
         for &(li, ri) in &pairs {
             let (l, r): (&LinkedFeature, &LinkedFeature) = (&left[li], &right[ri]);
@@ -598,7 +618,12 @@ impl Pipeline {
                     if let Some(track) = dropped {
                         orphans.push((Orphan::Replaced(l.track_id), track));
                     }
-                    births.push((l.track_id, r.track_id, sample, point));
+                    births.push(Birth {
+                        left_track: l.track_id,
+                        right_track: r.track_id,
+                        sample,
+                        point,
+                    });
                 }
             }
         }
@@ -620,8 +645,14 @@ impl Pipeline {
         let rejoined = self.rejoin(&births, &orphans, frame.t_s);
         out.stats.rejoined = rejoined.iter().flatten().count();
         let mut orphans: Vec<Option<(Orphan, Track3d)>> = orphans.into_iter().map(Some).collect();
-        for (birth, (left_track, right_track, sample, point)) in births.into_iter().enumerate() {
-            let joined = rejoined[birth].and_then(|(o, before)| {
+        for (birth, rejoins) in births.into_iter().zip(rejoined) {
+            let Birth {
+                left_track,
+                right_track,
+                sample,
+                point,
+            } = birth;
+            let joined = rejoins.and_then(|(o, before)| {
                 let (_, mut track) = orphans[o].take()?;
                 // A track of one sample rejoined through the one before it: the three are one
                 // particle, so the earlier sample leads the track.
@@ -732,12 +763,9 @@ impl Pipeline {
         }
         let (mut along_sq, mut across_sq) = (0.0, 0.0);
         for (s, r) in window.iter().zip(fit.residuals()) {
-            let sight = (s.point_in_world - s.camera_in_world)
-                .try_normalize(1e-12)
-                .unwrap_or_else(Vector3::z);
-            let along = r.dot(&sight);
+            let (along, across) = s.along_and_across_sq(&r);
             along_sq += along * along;
-            across_sq += (r.norm_squared() - along * along).max(0.0);
+            across_sq += across;
         }
         let n = window.len() as f64;
         let along_limit = v.max_residual_ratio
@@ -816,7 +844,7 @@ impl Pipeline {
     /// (one-to-one, closest first).
     fn rejoin(
         &self,
-        births: &[(u64, u64, Sample, MatchedPoint)],
+        births: &[Birth],
         orphans: &[(Orphan, Track3d)],
         t_s: f64,
     ) -> Vec<Option<(usize, Option<usize>)>> {
@@ -830,16 +858,14 @@ impl Pipeline {
         // What each orphan predicts: (orphan, the orphan before it, predicted world point,
         // predicted left image point, per-frame image step).
         let mut predictions = Vec::new();
-        let lone: Vec<(usize, &Sample)> = orphans
-            .iter()
-            .enumerate()
-            .filter_map(|(o, (_, t))| match t.samples.as_slices().0 {
-                [only] if t.samples.len() == 1 => Some((o, only)),
-                _ => None,
-            })
-            .collect();
         let lone_grid = PointGrid::new(
-            lone.iter().map(|(o, s)| (s.left_rect, *o)),
+            orphans
+                .iter()
+                .enumerate()
+                .filter_map(|(o, (_, t))| match t.samples.as_slices().0 {
+                    [only] if t.samples.len() == 1 => Some((only.left_rect, o)),
+                    _ => None,
+                }),
             link.max_displacement_px.max(16.0),
         );
         for (o, (_, track)) in orphans.iter().enumerate() {
@@ -874,7 +900,10 @@ impl Pipeline {
             }
         }
         let birth_grid = PointGrid::new(
-            births.iter().enumerate().map(|(i, b)| (b.2.left_rect, i)),
+            births
+                .iter()
+                .enumerate()
+                .map(|(i, b)| (b.sample.left_rect, i)),
             16.0,
         );
         let along_scale = |depth_m: f64| {
@@ -884,21 +913,20 @@ impl Pipeline {
                     .depth_sigma_m(depth_m, disparity_sigma_px)
         };
         let cost = |sample: &Sample, predicted: &Point3<f64>, across_px: f64, along_m: f64| {
-            let sight = (sample.point_in_world - sample.camera_in_world)
-                .try_normalize(1e-12)
-                .unwrap_or_else(Vector3::z);
-            let miss = sample.point_in_world - predicted;
-            let along = miss.dot(&sight);
-            let across = (miss.norm_squared() - along * along).max(0.0).sqrt();
-            (across * focal_px / (sample.depth_m * across_px)).powi(2) + (along / along_m).powi(2)
+            let (along, across_sq) =
+                sample.along_and_across_sq(&(sample.point_in_world - predicted));
+            (across_sq.sqrt() * focal_px / (sample.depth_m * across_px)).powi(2)
+                + (along / along_m).powi(2)
         };
         let mut candidates = Vec::new();
         for (h, (_, _, world, image, step)) in predictions.iter().enumerate() {
             // A prediction misses by about the change in velocity over a frame, which grows
             // with the step (a vortex turns its particles by a fixed angle per frame).
-            let across_px = link.rejoin_tolerance_px.max(0.3 * step);
+            let across_px = link
+                .rejoin_tolerance_px
+                .max(super::link::TURN_PER_FRAME * step);
             for (_, b) in birth_grid.near(image.x, image.y, 2.0 * across_px) {
-                let sample = &births[*b].2;
+                let sample = &births[*b].sample;
                 let c = cost(sample, world, across_px, along_scale(sample.depth_m));
                 if c <= 1.0 {
                     candidates.push((c, *b, h));
@@ -913,18 +941,19 @@ impl Pipeline {
             let (Orphan::Replaced(left_track), [last]) = (kind, track.samples.as_slices().0) else {
                 continue;
             };
-            let Some(b) = births.iter().position(|birth| birth.0 == *left_track) else {
+            let Some(b) = births
+                .iter()
+                .position(|birth| birth.left_track == *left_track)
+            else {
                 continue;
             };
-            let sample = &births[b].2;
+            let sample = &births[b].sample;
             let moved_m = (sample.left_rect.x - last.left_rect.x)
                 .hypot(sample.left_rect.y - last.left_rect.y)
                 * sample.depth_m
                 / focal_px;
-            let sight = (sample.point_in_world - sample.camera_in_world)
-                .try_normalize(1e-12)
-                .unwrap_or_else(Vector3::z);
-            let along = (sample.point_in_world - last.point_in_world).dot(&sight);
+            let (along, _) =
+                sample.along_and_across_sq(&(sample.point_in_world - last.point_in_world));
             let c = (along.abs() / (along_scale(sample.depth_m) + moved_m)).powi(2);
             if c <= 1.0 {
                 predictions.push((o, None, last.point_in_world, last.left_rect, 0.0));
