@@ -37,8 +37,10 @@
 //!   headset).
 //! - [`load`]: `mrptv load`, a bounded load test of a `serve` child process on loopback.
 //!
-//! Threads: offline, everything runs on the caller's thread (the reader decodes PNGs one frame
-//! ahead on a helper thread). Live, the tokio runtime runs the sockets; each session's pipeline
+//! Threads: a pipeline detects and links the left and right images of a frame in parallel, on
+//! rayon's pool (one thread per core, shared by all sessions; `RAYON_NUM_THREADS` limits it);
+//! everything after that runs on the caller's thread. Offline, a reader decodes PNGs one frame
+//! ahead on a helper thread. Live, the tokio runtime runs the sockets; each session's pipeline
 //! and recorder have their own OS threads, so CPU-bound work never stalls the network.
 
 #[cfg(feature = "service")]

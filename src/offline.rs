@@ -17,7 +17,7 @@ use crate::ptv::{
 };
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger};
-use crate::synth::{ScenarioSpec, Synthesizer, TruthRow};
+use crate::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
 use crate::tables::{self, TrackRow};
 
 #[derive(Debug, thiserror::Error)]
@@ -48,6 +48,37 @@ pub struct SynthSummary {
     pub truth_rows: usize,
     /// Fraction of truth particle-frames whose centre projects into both images.
     pub visible_fraction: f64,
+    visible: usize,
+    /// Left-image particles per pixel, averaged over the frames.
+    pub particles_per_pixel: f64,
+    in_view_left: usize,
+    /// Of the particles in view of the left camera, the fraction whose image there touches or
+    /// overlaps another's.
+    pub touching_fraction: f64,
+    touching_left: usize,
+}
+
+impl SynthSummary {
+    fn add(&mut self, frame: &SynthFrame, pixels: usize) {
+        self.frames += 1;
+        self.truth_rows += frame.truth.len();
+        self.visible += frame.visible_in_both;
+        self.in_view_left += frame.in_view_left;
+        self.touching_left += frame.touching_left;
+        let ratio = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+        self.visible_fraction = ratio(self.visible, self.truth_rows);
+        self.touching_fraction = ratio(self.touching_left, self.in_view_left);
+        self.particles_per_pixel = ratio(self.in_view_left, self.frames * pixels);
+    }
+
+    /// How crowded the images are, for a person choosing a scene.
+    pub fn crowding(&self) -> String {
+        format!(
+            "{:.4} particles per pixel, {:.0} % of particle images touching another",
+            self.particles_per_pixel,
+            100.0 * self.touching_fraction
+        )
+    }
 }
 
 /// Writes a synthetic recording plus `truth.csv`. No `mrptv.toml`: a recording is processed with
@@ -65,9 +96,9 @@ pub fn write_synthetic(
     let truth_path = out.join("truth.csv");
     let mut truth = BufWriter::new(fs::File::create(&truth_path).map_err(io_error(&truth_path))?);
     writeln!(truth, "{}", tables::TRUTH_HEADER).map_err(io_error(&truth_path))?;
+    let pixels = spec.rig.width as usize * spec.rig.height as usize;
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut summary = SynthSummary::default();
-    let mut visible = 0;
     for _ in 0..frames {
         let f = synth.next_frame();
         let entry = FrameEntry {
@@ -79,17 +110,10 @@ pub fn write_synthetic(
         for row in &f.truth {
             tables::write_truth_row(&mut truth, row).map_err(io_error(&truth_path))?;
         }
-        visible += f.visible_in_both;
-        summary.truth_rows += f.truth.len();
-        summary.frames += 1;
+        summary.add(&f, pixels);
         progress(summary.frames);
     }
     truth.flush().map_err(io_error(&truth_path))?;
-    summary.visible_fraction = if summary.truth_rows == 0 {
-        0.0
-    } else {
-        visible as f64 / summary.truth_rows as f64
-    };
     Ok(summary)
 }
 
@@ -103,6 +127,8 @@ pub struct RunTotals {
     pub pipeline_s: f64,
     /// The stereo search the pipeline settled on.
     pub stereo_search: Option<StereoSearch>,
+    /// The last search it narrowed to where the tracks were (`stereo.learn_depth_range`).
+    pub learnt_search: Option<StereoSearch>,
 }
 
 /// A run's health figures (see [`RunTotals::health`]).
@@ -172,9 +198,20 @@ impl RunTotals {
         } else {
             window
         };
-        let search = self
+        let mut search = self
             .stereo_search
             .map_or_else(|| "not set up".to_string(), |s| s.to_string());
+        if let Some(learnt) = self.learnt_search {
+            search += &format!(
+                ", narrowed to where the tracks are in {:.0} % of frames (last: depths \
+                 {:.3}..{:.3} m, disparity {:.1}..{:.1} px)",
+                100.0 * ratio(self.counts.learnt_search, self.frames),
+                learnt.near_m,
+                learnt.far_m,
+                learnt.min_disparity_px,
+                learnt.max_disparity_px
+            );
+        }
         let first_steps =
             if config.link.predict_new_from_neighbours && config.link.max_displacement_px > 0.0 {
                 format!(
@@ -389,6 +426,9 @@ fn push_pixels(
     let started = Instant::now();
     let output = pipeline.push(&frame)?;
     totals.add(&output.stats, started.elapsed().as_secs_f64());
+    if output.stats.learnt_search > 0 {
+        totals.learnt_search = pipeline.learnt_search().or(totals.learnt_search);
+    }
     Ok(output)
 }
 
@@ -484,6 +524,7 @@ pub struct InMemoryRun {
     pub causal_tracks: Vec<TrackRow>,
     pub totals: RunTotals,
     pub report: Report,
+    pub scene: SynthSummary,
 }
 
 pub fn run_in_memory(
@@ -496,7 +537,9 @@ pub fn run_in_memory(
     mut progress: impl FnMut(usize),
 ) -> Result<InMemoryRun, OfflineError> {
     let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
+    let pixels = spec.rig.width as usize * spec.rig.height as usize;
     let mut synth = Synthesizer::new(spec, particles, seed);
+    let mut scene = SynthSummary::default();
     let mut truth = Vec::new();
     let mut tracks = Vec::new();
     let mut causal_tracks = Vec::new();
@@ -514,6 +557,7 @@ pub fn run_in_memory(
         )?;
         tracks.extend(output.vectors.iter().map(TrackRow::from));
         causal_tracks.extend(output.causal_vectors.iter().map(TrackRow::from));
+        scene.add(&f, pixels);
         truth.extend(f.truth);
         progress(n + 1);
     }
@@ -524,6 +568,7 @@ pub fn run_in_memory(
         causal_tracks,
         totals,
         report,
+        scene,
     })
 }
 

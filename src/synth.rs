@@ -77,10 +77,12 @@ pub enum Scenario {
     Vortex,
     WideConvergent,
     Cluttered,
+    Seeded,
+    SeededTurbulence,
 }
 
 impl Scenario {
-    pub const ALL: [Scenario; 13] = [
+    pub const ALL: [Scenario; 15] = [
         Scenario::Uniform,
         Scenario::Flume,
         Scenario::WindTunnel,
@@ -94,6 +96,8 @@ impl Scenario {
         Scenario::Vortex,
         Scenario::WideConvergent,
         Scenario::Cluttered,
+        Scenario::Seeded,
+        Scenario::SeededTurbulence,
     ];
 
     pub fn name(self) -> &'static str {
@@ -111,6 +115,8 @@ impl Scenario {
             Scenario::Vortex => "vortex",
             Scenario::WideConvergent => "wide-convergent",
             Scenario::Cluttered => "cluttered",
+            Scenario::Seeded => "seeded",
+            Scenario::SeededTurbulence => "seeded-turbulence",
         }
     }
 
@@ -129,6 +135,8 @@ impl Scenario {
             Scenario::Vortex => "a vortex in front of the flume camera (solid-body rotation, 5 rad/s, axis along the view): under 5 px per frame near the axis, 25-50 px at the rim, 120 particles at 0.32-0.5 m",
             Scenario::Cluttered => "raw HoloLens 2 geometry in a furnished room: Gaussian particle images with motion blur, vignetting, hot pixels, LEDs, posters with print, sensor noise 4",
             Scenario::WideConvergent => "long-lens lab rig: two 640x480 cameras, f = 8000 px, 0.5 m apart, toed in 22.5 deg each (45 deg between axes); 1 mm particles at 0.6 m",
+            Scenario::Seeded => "densely seeded tank seen by HoloLens-2-like cameras: 640x480 at 30 Hz, 2.5-6 px particles in a slab at 0.5-0.6 m, 0.005 particles per pixel, uniform flow ~2.3 px per frame",
+            Scenario::SeededTurbulence => "the seeded tank in turbulence (random Fourier modes, 10-40 cm, RMS speed 0.12 m/s): accelerating flow, 0-8 px per frame",
         }
     }
 }
@@ -311,6 +319,11 @@ pub struct ScenarioSpec {
     pub head: HeadMotion,
     /// What a real camera and room add (all off in the idealised scenes).
     pub clutter: Clutter,
+    /// A particle leaving through the near or far face re-enters at a random place on the
+    /// opposite one, not straight behind where it left: in a thin slab, a particle that
+    /// jumped in depth at the same place in the image would continue the old particle's
+    /// track, with a velocity no particle had.
+    pub scatter_depth_reentry: bool,
 }
 
 /// Image effects of real cameras in real rooms.
@@ -341,7 +354,7 @@ fn centred_pinhole(width: u32, height: u32, f_px: f64) -> CameraModel {
 }
 
 /// Two identical pinholes, principal point at the image centre, baseline along x.
-pub(crate) fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
+pub fn parallel_rig(width: u32, height: u32, f_px: f64, baseline_m: f64) -> StereoRig {
     let camera = centred_pinhole(width, height, f_px);
     StereoRig {
         width,
@@ -456,6 +469,7 @@ impl ScenarioSpec {
                 noise_sd: 0.0,
                 head: HeadMotion::None,
                 clutter: Clutter::default(),
+                scatter_depth_reentry: false,
             }
         };
         let flume = || ScenarioSpec {
@@ -477,6 +491,7 @@ impl ScenarioSpec {
             noise_sd: 2.0,
             head: HeadMotion::None,
             clutter: Clutter::default(),
+            scatter_depth_reentry: false,
         };
         let wind_tunnel = || ScenarioSpec {
             default_frames: 120,
@@ -490,6 +505,18 @@ impl ScenarioSpec {
             background: 10.0,
             background_gradient: 10.0,
             illumination_gradient: 0.2,
+            ..flume()
+        };
+        // Small particles (6 mm: 2.5-6 px) as densely as PTV users seed, in a 10 cm slab that
+        // fills both views, so the images are evenly crowded.
+        let seeded = || ScenarioSpec {
+            default_frames: 90,
+            default_particles: 1540,
+            domain_min: Point3::new(-0.33, -0.32, 0.5),
+            domain_max: Point3::new(0.43, 0.32, 0.6),
+            diameter_m: 0.006,
+            diameter_sd_m: 0.0013,
+            scatter_depth_reentry: true,
             ..flume()
         };
         let hololens_raw = || ScenarioSpec {
@@ -579,6 +606,15 @@ impl ScenarioSpec {
                     ..flume()
                 }
             }
+            Scenario::Seeded => seeded(),
+            Scenario::SeededTurbulence => {
+                let mut rng = Rng::new(0x5EED << 32 | 7);
+                ScenarioSpec {
+                    default_frames: 90,
+                    flow: Flow::turbulence(&mut rng, 0.12, 0.1, 0.4),
+                    ..seeded()
+                }
+            }
             Scenario::Cluttered => ScenarioSpec {
                 default_particles: 40,
                 flow: Flow::Uniform(Vector3::new(0.2, -0.08, 0.03)),
@@ -636,6 +672,10 @@ pub struct SynthFrame {
     pub truth: Vec<TruthRow>,
     /// Particles whose centre projects inside both images.
     pub visible_in_both: usize,
+    /// Particles whose centre projects inside the left image, and those of them whose image
+    /// there touches or overlaps another particle's.
+    pub in_view_left: usize,
+    pub touching_left: usize,
 }
 
 #[derive(Debug, Clone)]
@@ -710,6 +750,7 @@ impl Synthesizer {
         let mut right = vec![0f32; w * h];
         let mut truth = Vec::with_capacity(self.particles.len());
         let mut visible_in_both = 0;
+        let mut left_discs = Vec::new();
         for p in &self.particles {
             let in_rig = rig_from_world * p.position;
             // With the shutter open for part of the frame the image is the average of the
@@ -728,9 +769,14 @@ impl Synthesizer {
                 let at = in_rig + velocity_in_rig * dt;
                 let at_right = spec.rig.right_from_left * at;
                 let share = 1.0 / steps as f64;
-                seen_left |= render_particle(spec, &spec.rig.left, &at, p, share, &mut left);
+                let disc = render_particle(spec, &spec.rig.left, &at, p, share, &mut left);
+                if k == steps / 2 {
+                    left_discs.extend(disc);
+                }
+                seen_left |= disc.is_some();
                 seen_right |=
-                    render_particle(spec, &spec.rig.right, &at_right, p, share, &mut right);
+                    render_particle(spec, &spec.rig.right, &at_right, p, share, &mut right)
+                        .is_some();
             }
             visible_in_both += usize::from(seen_left && seen_right);
             truth.push(TruthRow {
@@ -751,6 +797,8 @@ impl Synthesizer {
             right,
             truth,
             visible_in_both,
+            in_view_left: left_discs.len(),
+            touching_left: touching(&mut left_discs),
         };
         self.advance(t_s);
         self.frame += 1;
@@ -774,9 +822,15 @@ impl Synthesizer {
             }
             let outside = (0..3).any(|a| x[a] < lo[a] || x[a] > hi[a]);
             if outside {
+                let through_depth = x[2] < lo[2] || x[2] > hi[2];
                 for a in 0..3 {
                     let size = hi[a] - lo[a];
                     x[a] = lo[a] + (x[a] - lo[a]).rem_euclid(size);
+                }
+                if through_depth && self.spec.scatter_depth_reentry {
+                    for a in 0..2 {
+                        x[a] = self.rng.range(lo[a], hi[a]);
+                    }
                 }
                 self.particles[i] = self.new_particle(x);
             } else {
@@ -859,7 +913,37 @@ fn fixed_layers(spec: &ScenarioSpec, rng: &mut Rng) -> (Vec<f32>, Vec<f32>) {
     (left, right)
 }
 
-/// Adds one particle's disc to a camera's float image; returns whether its centre is in view.
+/// A particle's image: centre and radius, pixels.
+#[derive(Debug, Clone, Copy)]
+struct Disc {
+    x: f64,
+    y: f64,
+    radius: f64,
+}
+
+/// How many of the discs touch or overlap another.
+fn touching(discs: &mut [Disc]) -> usize {
+    discs.sort_by(|a, b| a.x.total_cmp(&b.x));
+    let widest = discs.iter().map(|d| d.radius).fold(0.0, f64::max);
+    let mut touches = vec![false; discs.len()];
+    for i in 0..discs.len() {
+        let a = discs[i];
+        for j in i + 1..discs.len() {
+            let b = discs[j];
+            if b.x - a.x > a.radius + widest {
+                break;
+            }
+            if (b.x - a.x).hypot(b.y - a.y) <= a.radius + b.radius {
+                touches[i] = true;
+                touches[j] = true;
+            }
+        }
+    }
+    touches.iter().filter(|&&t| t).count()
+}
+
+/// Adds one particle's disc to a camera's float image; returns its image if its centre is in
+/// view.
 fn render_particle(
     spec: &ScenarioSpec,
     camera: &CameraModel,
@@ -867,10 +951,8 @@ fn render_particle(
     p: &Particle,
     share: f64,
     image: &mut [f32],
-) -> bool {
-    let Some(centre) = camera.project(in_camera) else {
-        return false;
-    };
+) -> Option<Disc> {
+    let centre = camera.project(in_camera)?;
     let range_m = in_camera.coords.norm();
     let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
     let normalized = Vector2::new(in_camera.x / in_camera.z, in_camera.y / in_camera.z);
@@ -887,9 +969,7 @@ fn render_particle(
         column(Vector2::new(eps, 0.0)),
         column(Vector2::new(0.0, eps)),
     ]);
-    let Some(inverse) = jacobian.try_inverse() else {
-        return false;
-    };
+    let inverse = jacobian.try_inverse()?;
     let radius = p.diameter_m / (2.0 * range_m);
     let brightness =
         share * p.brightness_factor * spec.illumination / (4.0 * PI * range_m * range_m);
@@ -935,7 +1015,13 @@ fn render_particle(
             }
         }
     }
-    spec.rig.contains(centre)
+    spec.rig.contains(centre).then(|| Disc {
+        x: centre.x,
+        y: centre.y,
+        // Normalized to pixels by the lens's mean scale; optics blur widens the image by about
+        // a sigma on each side.
+        radius: radius * std::f64::consts::SQRT_2 / inverse.norm().max(1e-12) + psf,
+    })
 }
 
 fn finish_image(spec: &ScenarioSpec, signal: &[f32], fixed: &[f32], noise: &mut Rng) -> Vec<u8> {
@@ -1004,6 +1090,45 @@ mod tests {
                 })
                 .sum();
             assert!(div.abs() < 1e-5, "divergence {div}");
+        }
+    }
+
+    #[test]
+    fn touching_discs_are_counted_once_each() {
+        let disc = |x, y, radius| Disc { x, y, radius };
+        // Two touching at the rim, two overlapping, one alone; a wide disc reaches far.
+        let mut discs = [
+            disc(0.0, 0.0, 1.0),
+            disc(2.0, 0.0, 1.0),
+            disc(10.0, 0.0, 1.5),
+            disc(11.0, 1.0, 1.5),
+            disc(30.0, 0.0, 1.0),
+            disc(50.0, 0.0, 6.0),
+            disc(43.5, 0.0, 1.0),
+        ];
+        assert_eq!(touching(&mut discs), 6);
+        assert_eq!(touching(&mut []), 0);
+    }
+
+    #[test]
+    fn seeded_scenes_are_as_crowded_as_dense_seeding() {
+        for scenario in [Scenario::Seeded, Scenario::SeededTurbulence] {
+            let spec = ScenarioSpec::new(scenario);
+            let pixels = (spec.rig.width * spec.rig.height) as f64;
+            let mut synth = Synthesizer::new(spec.clone(), spec.default_particles, 1);
+            let (mut in_view, mut touching) = (0, 0);
+            for _ in 0..3 {
+                let f = synth.next_frame();
+                in_view += f.in_view_left;
+                touching += f.touching_left;
+            }
+            let per_pixel = in_view as f64 / (3.0 * pixels);
+            let touching = touching as f64 / in_view as f64;
+            assert!(
+                (0.0045..0.0055).contains(&per_pixel),
+                "{scenario}: {per_pixel}"
+            );
+            assert!((0.2..0.35).contains(&touching), "{scenario}: {touching}");
         }
     }
 

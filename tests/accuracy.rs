@@ -7,13 +7,32 @@ use mrptv::ptv::PipelineConfig;
 use mrptv::synth::{Scenario, ScenarioSpec};
 
 fn run(scenario: Scenario, config: Option<PipelineConfig>, seed: u64) -> Report {
+    let particles = ScenarioSpec::new(scenario).default_particles;
+    run_with(
+        scenario,
+        config,
+        particles,
+        EvalOptions::default().radius_m,
+        seed,
+    )
+}
+
+/// A scenario run with `particles`, its truth associated within `radius_m`.
+fn run_with(
+    scenario: Scenario,
+    config: Option<PipelineConfig>,
+    particles: usize,
+    radius_m: f64,
+    seed: u64,
+) -> Report {
     let spec = ScenarioSpec::new(scenario);
     let config = config.unwrap_or_default();
     let eval = EvalOptions {
         window_frames: config.velocity.half_window_frames as u64,
+        radius_m,
         ..Default::default()
     };
-    let (frames, particles) = (spec.default_frames, spec.default_particles);
+    let frames = spec.default_frames;
     run_in_memory(spec, config, frames, particles, seed, &eval, |_| {})
         .expect("scenario runs")
         .report
@@ -225,22 +244,60 @@ fn hard_scenarios_run_and_stay_sane() {
         Scenario::WindTunnel,
         Scenario::Flume,
     ] {
-        let r = run(scenario, None, 1);
-        println!(
-            "{scenario}: {:?} ghost {:.4} yield {:.4}",
-            r.relative_rms_velocity_error, r.ghost_rate, r.measurable_yield
-        );
-        assert!(
-            r.association_rate > 0.95,
-            "{scenario}: association {:.3}",
-            r.association_rate
-        );
-        assert!(
-            r.relative_rms_velocity_error.z < 0.1,
-            "{scenario}: {:?}",
-            r.relative_rms_velocity_error
-        );
+        assert_sane(scenario, &run(scenario, None, 1));
     }
+}
+
+/// Mostly correct vectors: nearly all near a particle, out-of-plane error under 10 %.
+fn assert_sane(scenario: Scenario, r: &Report) {
+    println!(
+        "{scenario}: {:?} ghost {:.4} yield {:.4}",
+        r.relative_rms_velocity_error, r.ghost_rate, r.measurable_yield
+    );
+    assert!(
+        r.association_rate > 0.95,
+        "{scenario}: association {:.3}",
+        r.association_rate
+    );
+    assert!(
+        r.relative_rms_velocity_error.z < 0.1,
+        "{scenario}: {:?}",
+        r.relative_rms_velocity_error
+    );
+}
+
+/// Dense seeding (`seeded`: 2.5-6 px particles at 0.005 particles per pixel, a quarter to a
+/// third of their images touching). No acceptance bound is met yet (README): these must run
+/// and give mostly correct vectors. Truth is associated within 5 mm, not 2 cm: particles are
+/// 3 cm apart in the slab, so at 2 cm a wrong pair lands near some particle and its error
+/// counts against a particle it never was.
+#[test]
+fn dense_seeding_runs_and_stays_sane() {
+    for scenario in [Scenario::Seeded, Scenario::SeededTurbulence] {
+        let particles = ScenarioSpec::new(scenario).default_particles;
+        let r = run_with(scenario, None, particles, 0.005, 1);
+        assert_sane(scenario, &r);
+        assert!(r.track_rows > 5000, "{scenario}: {} vectors", r.track_rows);
+    }
+}
+
+/// The search narrowed to the depths the tracks show (`stereo.learn_depth_range`) leaves most
+/// wrong pairs out of a dense seeding: at 0.002 particles per pixel, ghosts 0.98 % -> 0.21 %
+/// and yield 74 % -> 78 % (measured).
+#[test]
+fn learning_the_depth_range_cuts_ghosts_in_a_dense_seeding() {
+    let mut full_search = PipelineConfig::default();
+    full_search.stereo.learn_depth_range = false;
+    let radius = EvalOptions::default().radius_m;
+    let off = run_with(Scenario::Seeded, Some(full_search), 615, radius, 1);
+    let on = run_with(Scenario::Seeded, None, 615, radius, 1);
+    println!(
+        "full search: ghost {:.4} yield {:.4}; learnt: ghost {:.4} yield {:.4}",
+        off.ghost_rate, off.measurable_yield, on.ghost_rate, on.measurable_yield
+    );
+    assert!(off.ghost_rate > 0.005, "{:.4}", off.ghost_rate);
+    assert!(on.ghost_rate <= 0.005, "{:.4}", on.ghost_rate);
+    assert_bounds_yield("seeded 0.002 learnt", &on, 1.0, 0.75);
 }
 
 /// The live server's causal estimates (no latency: a line through the last 2M + 1 frames,

@@ -64,10 +64,15 @@ pub fn run(args: Args) -> Result<()> {
         bar.set_position(n as u64)
     })?;
     bar.finish_and_clear();
+    println!("scene: {}", run.scene.crowding());
     super::print_health(&run.totals.health(&config));
     println!(
-        "engine: {:.0} stereo frames/s on one thread, {:.1} matches/frame, {} vectors\n",
+        "engine: {:.0} stereo frames/s ({}), {:.1} matches/frame, {} vectors\n",
         run.totals.frames as f64 / run.totals.pipeline_s.max(1e-9),
+        match rayon::current_num_threads() {
+            1 => "one thread".to_string(),
+            n => format!("the two cameras in parallel on {n} threads"),
+        },
         run.totals.counts.matches as f64 / run.totals.frames.max(1) as f64,
         run.totals.counts.vectors
     );

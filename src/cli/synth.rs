@@ -56,10 +56,11 @@ pub fn run(args: Args) -> Result<()> {
     })?;
     bar.finish_and_clear();
     println!(
-        "wrote {} frames of '{scenario}' ({particles} particles, seed {seed}) to {}; {:.1} % of particle-frames visible in both cameras",
+        "wrote {} frames of '{scenario}' ({particles} particles, seed {seed}) to {}; {:.1} % of particle-frames visible in both cameras; {}",
         summary.frames,
         out.display(),
-        100.0 * summary.visible_fraction
+        100.0 * summary.visible_fraction,
+        summary.crowding()
     );
     println!(
         "next: mrptv process {0} --out tracks.csv && mrptv eval {0}/truth.csv tracks.csv",

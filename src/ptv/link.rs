@@ -241,8 +241,20 @@ impl CameraLinker {
             && config.max_displacement_px > 0.0
             && self.tracks.iter().any(|t| t.motion.is_none()))
         .then(|| FirstSteps::new(&self.tracks, features, scale));
+        // Tracks with a motion, indexed for new tracks to borrow it: a linear search per new
+        // track cost a dense frame (4,000 particles) more than its detection.
+        let established = (config.predict_new_from_neighbours
+            && config.neighbours > 0
+            && self.tracks.iter().any(|t| t.motion.is_none()))
+        .then(|| {
+            let with_motion = self.tracks.iter().enumerate();
+            PointGrid::new(
+                with_motion.filter_map(|(i, t)| t.motion.map(|_| (t.last.rect, i))),
+                16.0,
+            )
+        });
         let predictions: Vec<RectPoint> = (0..self.tracks.len())
-            .map(|t| self.predict(t, first_steps.as_ref(), config))
+            .map(|t| self.predict(t, first_steps.as_ref(), established.as_ref(), config))
             .collect();
         let h = config.box_half_side_px;
         let mut candidates = Vec::new();
@@ -352,6 +364,7 @@ impl CameraLinker {
         &self,
         t: usize,
         first_steps: Option<&FirstSteps>,
+        established: Option<&PointGrid>,
         config: &LinkConfig,
     ) -> RectPoint {
         let track = &self.tracks[t];
@@ -363,13 +376,13 @@ impl CameraLinker {
                 y: last.y + dy * frames,
             };
         }
-        if !config.predict_new_from_neighbours || config.neighbours == 0 {
+        let Some(established) = established else {
             return last;
-        }
+        };
         // Established neighbours that agree on a motion (within half the box of their median)
         // are the best guess; where they disagree (particles at different depths, or none is
         // established yet) the step is learnt from the images; else their median, else none.
-        let neighbours = self.neighbour_motion(last, config);
+        let neighbours = self.neighbour_motion(established, last, config);
         if let Some(((dx, dy), true)) = neighbours {
             return RectPoint {
                 x: last.x + dx * frames,
@@ -399,24 +412,25 @@ impl CameraLinker {
 
     /// The median motion of the `neighbours` established tracks nearest to `at`, and whether
     /// they agree on it (each within half the linking box).
-    fn neighbour_motion(&self, at: RectPoint, config: &LinkConfig) -> Option<((f64, f64), bool)> {
-        let mut near: Vec<(f64, (f64, f64))> = self
-            .tracks
-            .iter()
-            .filter_map(|o| {
-                o.motion
-                    .map(|m| ((o.last.rect.x - at.x).hypot(o.last.rect.y - at.y), m))
-            })
+    /// `established` holds the last positions of the tracks with a motion.
+    fn neighbour_motion(
+        &self,
+        established: &PointGrid,
+        at: RectPoint,
+        config: &LinkConfig,
+    ) -> Option<((f64, f64), bool)> {
+        let near: Vec<(f64, f64)> = established
+            .nearest_indexed(at.x, at.y, config.neighbours, usize::MAX)
+            .into_iter()
+            .filter_map(|(_, i)| self.tracks[i].motion)
             .collect();
         if near.is_empty() {
             return None;
         }
-        let k = config.neighbours.min(near.len());
-        near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
-        let (mut dxs, mut dys): (Vec<f64>, Vec<f64>) = near[..k].iter().map(|n| n.1).unzip();
+        let (mut dxs, mut dys): (Vec<f64>, Vec<f64>) = near.iter().copied().unzip();
         let motion = (median(&mut dxs), median(&mut dys));
-        let agree = k == config.neighbours
-            && near[..k].iter().all(|(_, (dx, dy))| {
+        let agree = near.len() == config.neighbours
+            && near.iter().all(|(dx, dy)| {
                 (dx - motion.0).hypot(dy - motion.1) <= config.box_half_side_px / 2.0
             });
         Some((motion, agree))
@@ -489,17 +503,30 @@ impl FirstSteps {
                 continue;
             }
             let tolerance = (0.15 * step).max(2.0);
-            let votes = near
-                .iter()
-                .filter(|q| self.features.any_in_box(q.x + dx, q.y + dy, tolerance))
-                .count();
-            if votes < 2 {
-                continue;
-            }
             let by_chance_per_neighbour =
                 1.0 - (-self.density_per_px2 * 4.0 * tolerance * tolerance).exp();
+            // A step is given up once its misses leave too few neighbours to outvote chance:
+            // in a dense frame a new track has hundreds of candidate steps, nearly all of them
+            // voted for by none or one neighbour.
+            let Some(needed) = votes_needed(k, by_chance_per_neighbour, CHANCE) else {
+                continue;
+            };
+            let (mut votes, mut misses) = (0, 0);
+            for q in &near {
+                if self.features.any_in_box(q.x + dx, q.y + dy, tolerance) {
+                    votes += 1;
+                } else {
+                    misses += 1;
+                    if k - misses < needed {
+                        break;
+                    }
+                }
+            }
+            if votes < needed {
+                continue;
+            }
             let chance = binomial_tail(k, votes, by_chance_per_neighbour);
-            if chance < CHANCE && best.is_none_or(|(b, _)| chance < b) {
+            if best.is_none_or(|(b, _)| chance < b) {
                 best = Some((chance, (dx, dy)));
             }
         }
@@ -538,6 +565,23 @@ impl FirstSteps {
         }
         best.map(|(_, d)| d)
     }
+}
+
+/// The fewest successes, at least 2, with `binomial_tail(n, v, p) < chance`; `None` if even `n`
+/// is not that unlikely. Computed as `binomial_tail` computes the tail, term for term, so the
+/// two agree exactly.
+fn votes_needed(n: usize, p: f64, chance: f64) -> Option<usize> {
+    let mut term = (1.0 - p).powi(n as i32);
+    let mut below = 0.0;
+    for i in 0..n {
+        below += term;
+        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
+        let at_least = i + 1;
+        if at_least >= 2 && (1.0 - below).max(0.0) < chance {
+            return Some(at_least);
+        }
+    }
+    None
 }
 
 /// P(X >= at_least) for X ~ Binomial(n, p).
@@ -649,12 +693,27 @@ impl PointGrid {
 
     /// Up to `k` points nearest to (x, y), except index `skip`; nearest first.
     pub(crate) fn nearest(&self, x: f64, y: f64, k: usize, skip: usize) -> Vec<RectPoint> {
+        self.nearest_indexed(x, y, k, skip)
+            .into_iter()
+            .map(|(p, _)| p)
+            .collect()
+    }
+
+    /// Up to `k` points nearest to (x, y) with their indices, except index `skip`; nearest
+    /// first. Exact: every point within the search radius is seen before the radius is trusted.
+    pub(crate) fn nearest_indexed(
+        &self,
+        x: f64,
+        y: f64,
+        k: usize,
+        skip: usize,
+    ) -> Vec<(RectPoint, usize)> {
         let mut half = self.cell_px;
         loop {
-            let mut found: Vec<(f64, RectPoint)> = self
+            let mut found: Vec<(f64, (RectPoint, usize))> = self
                 .near(x, y, half)
                 .filter(|(_, i)| *i != skip)
-                .map(|(p, _)| ((p.x - x).hypot(p.y - y), *p))
+                .map(|&(p, i)| ((p.x - x).hypot(p.y - y), (p, i)))
                 .filter(|(d, _)| *d <= half)
                 .collect();
             let everything = half > self.cell_px * (self.columns + self.rows) as f64;
@@ -972,6 +1031,17 @@ mod tests {
             .last()
             .expect("six frames");
         assert!(last.iter().any(|f| f.age == 1), "{last:?}");
+    }
+
+    #[test]
+    fn votes_needed_is_the_fewest_that_chance_explains_too_rarely() {
+        for n in 2..=8 {
+            for p in [1e-4, 0.01, 0.05, 0.1, 0.2, 0.4, 0.7] {
+                let direct = (2..=n).find(|&v| binomial_tail(n, v, p) < 1e-3);
+                assert_eq!(votes_needed(n, p, 1e-3), direct, "n {n}, p {p}");
+            }
+        }
+        assert_eq!(votes_needed(8, 0.7, 1e-3), None);
     }
 
     #[test]

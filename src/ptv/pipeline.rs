@@ -12,7 +12,7 @@ use super::detect::{DetectConfig, Detection, Detector, Separation};
 use super::kinematics::{fit_adaptive, fit_line, fit_quadratic, FitChoice, QuadraticWindow};
 use super::link::PointGrid;
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
-use super::stereo::{match_stereo, PairHistory, StereoConfig, StereoSearch};
+use super::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
 use crate::geometry::{CalibrationError, PixelPoint, RectPoint, Rectification, StereoRig};
 
@@ -100,6 +100,7 @@ impl PipelineConfig {
         c.stereo.weight_row = 1.0;
         c.stereo.disparity_range_fraction = Some(0.25);
         c.stereo.epipolar_band_fraction = Some(0.01);
+        c.stereo.learn_depth_range = false;
         c.velocity.max_residual_ratio = 0.0;
         c.velocity.adaptive_fit = false;
         c.velocity.min_window_travel_px = 0.0;
@@ -290,6 +291,9 @@ pub struct FrameStats {
     pub fixtures: usize,
     /// Images (0 to 2) thresholded above `contrast_c` because of their noise.
     pub noisy_images: usize,
+    /// Frames (0 or 1) matched in the disparity range learnt from the tracks
+    /// (`stereo.learn_depth_range`) rather than the full search.
+    pub learnt_search: usize,
 }
 
 /// Summing frames' statistics gives a run's (`tracks` then counts track-frames).
@@ -312,6 +316,7 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.rejoined += s.rejoined;
         self.fixtures += s.fixtures;
         self.noisy_images += s.noisy_images;
+        self.learnt_search += s.learnt_search;
     }
 }
 
@@ -406,11 +411,11 @@ pub struct Pipeline {
     config: PipelineConfig,
     rig: StereoRig,
     rectification: Rectification,
-    left_detector: Detector,
-    right_detector: Detector,
-    left_linker: CameraLinker,
-    right_linker: CameraLinker,
+    left: Camera,
+    right: Camera,
     stereo_search: StereoSearch,
+    /// Present while the stereo search may be narrowed to where the tracks are.
+    depth_learner: Option<DepthLearner>,
     pair_history: PairHistory,
     /// Live 3D tracks keyed by their left track id.
     tracks: BTreeMap<u64, Track3d>,
@@ -430,14 +435,23 @@ impl Pipeline {
         let rectification = Rectification::new(&rig)?;
         let stereo_search = StereoSearch::new(&config.stereo, &rectification)
             .map_err(|e| PipelineError::Config(e.to_string()))?;
+        let stereo = &config.stereo;
+        let depth_learner = (stereo.learn_depth_range
+            && stereo.depth_range_m.is_none()
+            && stereo.disparity_range_fraction.is_none())
+        .then(|| {
+            DepthLearner::new(
+                stereo_search,
+                rectification.focal_px * rectification.baseline_m,
+            )
+        });
         Ok(Self {
+            depth_learner,
             config,
             rig,
             rectification,
-            left_detector: Detector::new(),
-            right_detector: Detector::new(),
-            left_linker: CameraLinker::new(),
-            right_linker: CameraLinker::new(),
+            left: Camera::new(),
+            right: Camera::new(),
             stereo_search,
             pair_history: PairHistory::new(),
             tracks: BTreeMap::new(),
@@ -464,6 +478,12 @@ impl Pipeline {
     /// The stereo hard filter this pipeline settled on for its rig and config.
     pub fn stereo_search(&self) -> &StereoSearch {
         &self.stereo_search
+    }
+
+    /// The search narrowed to where the tracks are, when `stereo.learn_depth_range` has learnt
+    /// one; the next frame is matched in it.
+    pub fn learnt_search(&self) -> Option<StereoSearch> {
+        self.depth_learner.as_ref().and_then(DepthLearner::search)
     }
 
     fn check_image(
@@ -516,28 +536,33 @@ impl Pipeline {
             t_s: frame.t_s,
             ..Default::default()
         };
-        self.left_detector
-            .detect(frame.left, &self.config.detect, &mut out.detections_left);
-        self.right_detector
-            .detect(frame.right, &self.config.detect, &mut out.detections_right);
-        out.stats.noisy_images = [&self.left_detector, &self.right_detector]
-            .iter()
-            .filter(|d| d.last_contrast_c() < self.config.detect.contrast_c)
-            .count();
-
         let rect = &self.rectification;
-        let (left_features, left_raw) = rectify(&out.detections_left, |p| rect.left_to_rect(p));
-        let (right_features, right_raw) = rectify(&out.detections_right, |p| rect.right_to_rect(p));
         let scale = CostScale {
             half_width_px: rect.half_width_px,
             half_height_px: rect.half_height_px,
         };
-        let left = self
-            .left_linker
-            .push(&left_features, scale, &self.config.link);
-        let right = self
-            .right_linker
-            .push(&right_features, scale, &self.config.link);
+        // The cameras' own stages need nothing from each other: one core each. Their outputs
+        // do not depend on which runs first, so results match a single-threaded run exactly.
+        let config = &self.config;
+        let (left_camera, right_camera) = (&mut self.left, &mut self.right);
+        let (detections_left, detections_right) =
+            (&mut out.detections_left, &mut out.detections_right);
+        let ((left, left_raw), (right, right_raw)) = rayon::join(
+            || {
+                left_camera.push(frame.left, config, scale, detections_left, |p| {
+                    rect.left_to_rect(p)
+                })
+            },
+            || {
+                right_camera.push(frame.right, config, scale, detections_right, |p| {
+                    rect.right_to_rect(p)
+                })
+            },
+        );
+        out.stats.noisy_images = [&self.left.detector, &self.right.detector]
+            .iter()
+            .filter(|d| d.last_contrast_c() < self.config.detect.contrast_c)
+            .count();
         // Fixtures (features that have not moved for a while) never enter stereo matching: a
         // static light in the room would otherwise become a 3D point with a velocity of zero.
         let moving = |features: &[LinkedFeature]| -> (Vec<LinkedFeature>, Vec<usize>) {
@@ -551,11 +576,13 @@ impl Pipeline {
         let (moving_left, left_index) = moving(&left);
         let (moving_right, right_index) = moving(&right);
         out.stats.fixtures = (left.len() - moving_left.len()) + (right.len() - moving_right.len());
+        let learnt_search = self.learnt_search();
+        out.stats.learnt_search = usize::from(learnt_search.is_some());
         let stereo = match_stereo(
             &moving_left,
             &moving_right,
             scale,
-            &self.stereo_search,
+            learnt_search.as_ref().unwrap_or(&self.stereo_search),
             &mut self.pair_history,
             &self.config.stereo,
         );
@@ -589,15 +616,17 @@ impl Pipeline {
                 t_s: frame.t_s,
                 point_in_world: world_from_rig * t.point_in_rig,
                 depth_m: t.depth_m,
-                separation: left_raw[li].separation.max(right_raw[ri].separation),
+                separation: out.detections_left[left_raw[li]]
+                    .separation
+                    .max(out.detections_right[right_raw[ri]].separation),
                 left_rect: l.feature.rect,
                 camera_in_world: world_from_rig * Point3::origin(),
             };
             let point = MatchedPoint {
                 track_id: 0,
                 point_in_world: sample.point_in_world,
-                left_px: left_raw[li].centroid,
-                right_px: right_raw[ri].centroid,
+                left_px: out.detections_left[left_raw[li]].centroid,
+                right_px: out.detections_right[right_raw[ri]].centroid,
                 depth_m: t.depth_m,
             };
             match self.tracks.remove(&l.track_id) {
@@ -705,6 +734,17 @@ impl Pipeline {
             }
         }
         self.tracks = tracks;
+        if let Some(learner) = &mut self.depth_learner {
+            // Tracks seen this frame for CONFIRMED_SAMPLES frames: ghosts rarely last that long.
+            const CONFIRMED_SAMPLES: usize = 5;
+            let focal_baseline = self.rectification.focal_px * self.rectification.baseline_m;
+            let confirmed = self.tracks.values().filter_map(|t| {
+                let last = t.samples.back()?;
+                (last.seq == seq && t.samples.len() >= CONFIRMED_SAMPLES)
+                    .then(|| focal_baseline / last.depth_m)
+            });
+            learner.add(seq, confirmed);
+        }
         self.retired.retain(|t| seq - Self::last_seq(t) <= m);
         for track in self.tracks.values().chain(&self.retired) {
             match self.centred_vector(track, seq) {
@@ -1182,27 +1222,54 @@ impl Pipeline {
     }
 }
 
-/// Rectifies detections, dropping any whose centroid the lens model cannot undistort; returns the
-/// features and, index for index, the detections they came from.
-fn rectify(
-    detections: &[Detection],
-    to_rect: impl Fn(PixelPoint) -> Option<crate::geometry::RectPoint>,
-) -> (Vec<Feature>, Vec<&Detection>) {
-    detections
-        .iter()
-        .filter_map(|d| {
-            to_rect(d.centroid).map(|rect| {
-                (
-                    Feature {
-                        rect,
-                        diameter_px: d.diameter_px,
-                        brightness: d.brightness,
-                    },
-                    d,
-                )
+/// One camera's stages, which need nothing from the other camera: detection, rectification and
+/// per-camera linking.
+struct Camera {
+    detector: Detector,
+    linker: CameraLinker,
+}
+
+impl Camera {
+    fn new() -> Self {
+        Self {
+            detector: Detector::new(),
+            linker: CameraLinker::new(),
+        }
+    }
+
+    /// Detects into `detections` and links the rectified features; returns the linked features
+    /// and, index for index, the detection each came from (detections whose centroid the lens
+    /// model cannot undistort are left out).
+    fn push(
+        &mut self,
+        image: ImageView<'_>,
+        config: &PipelineConfig,
+        scale: CostScale,
+        detections: &mut Vec<Detection>,
+        to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
+    ) -> (Vec<LinkedFeature>, Vec<usize>) {
+        self.detector.detect(image, &config.detect, detections);
+        let (features, detection_of): (Vec<Feature>, Vec<usize>) = detections
+            .iter()
+            .enumerate()
+            .filter_map(|(i, d)| {
+                to_rect(d.centroid).map(|rect| {
+                    (
+                        Feature {
+                            rect,
+                            diameter_px: d.diameter_px,
+                            brightness: d.brightness,
+                        },
+                        i,
+                    )
+                })
             })
-        })
-        .unzip()
+            .unzip();
+        (
+            self.linker.push(&features, scale, &config.link),
+            detection_of,
+        )
+    }
 }
 
 #[cfg(test)]
@@ -1318,5 +1385,34 @@ mod tests {
                 assert!(!out.causal_vectors.is_empty(), "frame {}", f.index);
             }
         }
+    }
+
+    #[test]
+    fn both_cameras_in_parallel_give_exactly_what_one_thread_gives() {
+        let spec = ScenarioSpec::new(Scenario::Dense);
+        let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
+        let mut synth = Synthesizer::new(spec.clone(), 400, 3);
+        let frames: Vec<_> = (0..16).map(|_| synth.next_frame()).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("thread pool");
+            pool.install(|| {
+                let mut pipeline =
+                    Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
+                frames
+                    .iter()
+                    .map(|f| {
+                        pipeline
+                            .push(&frame(f.index, f.t_s, w, h, &f.left, &f.right))
+                            .expect("valid")
+                    })
+                    .collect::<Vec<_>>()
+            })
+        };
+        let (one, two) = (run(1), run(2));
+        assert!(one.iter().map(|o| o.vectors.len()).sum::<usize>() > 100);
+        assert_eq!(one, two);
     }
 }

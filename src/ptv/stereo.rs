@@ -15,7 +15,7 @@
 //! (its true partner hidden by an overlap) loses as soon as the true partner is back, while a true
 //! pair survives a single noisy frame.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
@@ -59,6 +59,9 @@ pub struct StereoConfig {
     /// (1 - w) * now`. 0 decides every frame afresh (the method). Above 0, a left track that
     /// changes partner also starts a new 3D track.
     pub pair_memory: f64,
+    /// Narrow the disparity search to the depths where the 3D tracks are (see
+    /// [`DepthLearner`]) while no `depth_range_m` or `disparity_range_fraction` sets it.
+    pub learn_depth_range: bool,
 }
 
 impl Default for StereoConfig {
@@ -74,6 +77,7 @@ impl Default for StereoConfig {
             weight_row: 100.0,
             assignment: Assignment::OneToOne,
             pair_memory: 0.8,
+            learn_depth_range: true,
         }
     }
 }
@@ -149,6 +153,116 @@ impl StereoSearch {
             near_m: depth(max_disparity_px),
             far_m: depth(min_disparity_px),
         })
+    }
+}
+
+impl StereoSearch {
+    /// This search with the disparity interval narrowed to `min_px..max_px` (kept inside its
+    /// own); `focal_baseline` (f h, px m) turns disparities into depths.
+    pub fn narrowed(&self, min_px: f64, max_px: f64, focal_baseline: f64) -> Self {
+        let min_disparity_px = min_px.max(self.min_disparity_px);
+        let max_disparity_px = max_px.min(self.max_disparity_px).max(min_disparity_px);
+        let depth = |d: f64| {
+            if d > 0.0 {
+                focal_baseline / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        Self {
+            min_disparity_px,
+            max_disparity_px,
+            near_m: depth(max_disparity_px),
+            far_m: depth(min_disparity_px),
+            ..*self
+        }
+    }
+}
+
+/// Bins of the disparity histogram a [`DepthLearner`] keeps.
+const LEARN_BINS: usize = 512;
+/// Frames of confirmed tracks a [`DepthLearner`] looks back over (3 s at 30 Hz).
+const LEARN_WINDOW_FRAMES: u64 = 90;
+/// Confirmed samples within the window before the search is narrowed.
+const LEARN_MIN_SAMPLES: usize = 200;
+
+/// Learns where the measurement volume lies from the tracks themselves. A rig's views overlap
+/// from a few centimetres to infinity, so at 0.005 particles per pixel a left particle has
+/// seven candidates in its band, and the wrong ones become ghosts or break tracks. Disparities
+/// of confirmed 3D tracks (real particles, seen for several frames) are kept for the last
+/// `LEARN_WINDOW_FRAMES`; once there are `LEARN_MIN_SAMPLES`, the search is narrowed to their
+/// 5th to 95th percentile widened by that span (and 2 px) on each side: a ghost minority
+/// cannot stretch it, and the volume's tails stay inside. The window slides, so the search
+/// follows a volume that moves; where confirmed tracks stop coming (the wearer turned to
+/// another flow), it falls back to the full search within the window and learns again.
+#[derive(Debug, Clone)]
+pub struct DepthLearner {
+    full: StereoSearch,
+    focal_baseline: f64,
+    recent: VecDeque<(u64, usize)>,
+    counts: Vec<usize>,
+}
+
+impl DepthLearner {
+    pub fn new(full: StereoSearch, focal_baseline: f64) -> Self {
+        Self {
+            full,
+            focal_baseline,
+            recent: VecDeque::new(),
+            counts: vec![0; LEARN_BINS],
+        }
+    }
+
+    fn bin_width(&self) -> f64 {
+        (self.full.max_disparity_px - self.full.min_disparity_px).max(1e-9) / LEARN_BINS as f64
+    }
+
+    /// Adds frame `seq`'s confirmed disparities and forgets those that left the window.
+    pub fn add(&mut self, seq: u64, disparities: impl Iterator<Item = f64>) {
+        let width = self.bin_width();
+        for d in disparities {
+            if !d.is_finite() {
+                continue;
+            }
+            let bin = ((d - self.full.min_disparity_px) / width).floor();
+            let bin = bin.clamp(0.0, (LEARN_BINS - 1) as f64) as usize;
+            self.counts[bin] += 1;
+            self.recent.push_back((seq, bin));
+        }
+        while let Some(&(oldest, bin)) = self.recent.front() {
+            if oldest + LEARN_WINDOW_FRAMES > seq {
+                break;
+            }
+            self.counts[bin] -= 1;
+            self.recent.pop_front();
+        }
+    }
+
+    /// The search narrowed to the learnt volume, or `None` while too few tracks confirm it.
+    pub fn search(&self) -> Option<StereoSearch> {
+        let total = self.recent.len();
+        if total < LEARN_MIN_SAMPLES {
+            return None;
+        }
+        let width = self.bin_width();
+        let percentile = |fraction: f64| {
+            let wanted = (fraction * total as f64).ceil() as usize;
+            let mut seen = 0;
+            for (bin, &count) in self.counts.iter().enumerate() {
+                seen += count;
+                if seen >= wanted.max(1) {
+                    return bin;
+                }
+            }
+            LEARN_BINS - 1
+        };
+        let low = self.full.min_disparity_px + percentile(0.05) as f64 * width;
+        let high = self.full.min_disparity_px + (percentile(0.95) + 1) as f64 * width;
+        let margin = (high - low) + 2.0;
+        Some(
+            self.full
+                .narrowed(low - margin, high + margin, self.focal_baseline),
+        )
     }
 }
 
@@ -267,6 +381,51 @@ mod tests {
         near_m: 0.0,
         far_m: f64::INFINITY,
     };
+
+    #[test]
+    fn the_learnt_search_holds_the_tracks_and_not_a_ghost_minority() {
+        let full = StereoSearch {
+            min_disparity_px: 0.0,
+            max_disparity_px: 640.0,
+            epipolar_band_px: 2.0,
+            near_m: 36.0 / 640.0,
+            far_m: f64::INFINITY,
+        };
+        let mut learner = DepthLearner::new(full, 36.0);
+        let mut rng = crate::synth::Rng::new(5);
+        // 20 confirmed tracks a frame between 60 and 72 px, and one ghost anywhere in 3.
+        let frame = |rng: &mut crate::synth::Rng, seq: u64| {
+            let mut d: Vec<f64> = (0..20).map(|_| rng.range(60.0, 72.0)).collect();
+            if seq.is_multiple_of(3) {
+                d.push(rng.range(0.0, 640.0));
+            }
+            d
+        };
+        for seq in 1..=9 {
+            let d = frame(&mut rng, seq);
+            learner.add(seq, d.into_iter());
+        }
+        assert_eq!(learner.search(), None, "180 samples are too few");
+        for seq in 10..=90 {
+            let d = frame(&mut rng, seq);
+            learner.add(seq, d.into_iter());
+        }
+        let learnt = learner.search().expect("learnt");
+        // The 5th-95th percentiles (about 60.6..71.4) widened by their span and 2 px.
+        assert!(
+            (45.0..49.0).contains(&learnt.min_disparity_px)
+                && (83.0..88.0).contains(&learnt.max_disparity_px),
+            "{learnt:?}"
+        );
+        assert!((learnt.near_m - 36.0 / learnt.max_disparity_px).abs() < 1e-12);
+        assert_eq!(learnt.epipolar_band_px, 2.0);
+        // Tracks stop coming (the wearer looked elsewhere): the full search is back once
+        // the window has passed.
+        for seq in 91..=200 {
+            learner.add(seq, std::iter::empty());
+        }
+        assert_eq!(learner.search(), None);
+    }
 
     fn linked(track_id: u64, x: f64, y: f64, diameter_px: f64) -> LinkedFeature {
         LinkedFeature {
