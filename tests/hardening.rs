@@ -665,12 +665,23 @@ async fn every_kind_of_bad_input_gets_a_clear_error_and_others_stream_on() {
         .expect("sends");
     assert_eq!(next_binary(&mut ws).await.frame_index, 5);
 
-    // Oversize (over --max-message-mib): told why, then the connection closes.
-    ws.send(binary(vec![7u8; (1 << 20) + 1]))
-        .await
-        .expect("sends");
+    // Oversize (over --max-message-mib): told why, then the connection closes. The server stops
+    // reading at the oversize header, so the rest of the message is unread when it closes, and
+    // TCP answers it with a reset: a client still sending then, or slow to read, can lose the
+    // error text to the reset (protocol/README.md, Limits). Anything else is a failure.
+    let is_reset = |e: &tokio_tungstenite::tungstenite::Error| {
+        matches!(e, tokio_tungstenite::tungstenite::Error::Io(io)
+            if io.kind() == std::io::ErrorKind::ConnectionReset)
+    };
+    let mut reset = match ws.send(binary(vec![7u8; (1 << 20) + 1])).await {
+        Ok(()) => false,
+        Err(e) => {
+            assert!(is_reset(&e), "sends: {e}");
+            true
+        }
+    };
     let mut told = None;
-    let mut closed = false;
+    let mut closed = reset;
     while let Ok(Some(m)) = tokio::time::timeout(Duration::from_secs(10), ws.next()).await {
         match m {
             Ok(Message::Text(t)) => {
@@ -678,15 +689,25 @@ async fn every_kind_of_bad_input_gets_a_clear_error_and_others_stream_on() {
                     told = Some(message);
                 }
             }
-            Ok(Message::Close(_)) | Err(_) => {
+            Ok(Message::Close(_)) => {
+                closed = true;
+                break;
+            }
+            Err(e) => {
+                reset |= is_reset(&e);
                 closed = true;
                 break;
             }
             _ => {}
         }
     }
-    let told = told.expect("an error before the close");
-    assert!(told.contains("too long") || told.contains("size"), "{told}");
+    match told {
+        Some(told) => assert!(told.contains("too long") || told.contains("size"), "{told}"),
+        None => assert!(
+            reset,
+            "no error before the close, and no reset to lose it to"
+        ),
+    }
     assert!(
         closed || ws.next().await.is_none(),
         "closed after an oversize message"
