@@ -21,9 +21,10 @@ pub struct Spot {
 const PER_SPOT: usize = 5;
 const MAX_FLATNESS: f64 = 4.0;
 const MAX_ITERATIONS: usize = 15;
-/// A step that moves no centre by more than this ends the fit: far below the 0.01 px that
-/// centroids are good to.
-const CONVERGED_STEP_PX: f64 = 1e-3;
+/// A step that moves no centre by more than this ends the fit: below the 0.01 px that
+/// centroids are good to. Measured against 1e-3 px: every scenario's figures within 0.1 point,
+/// the whole pipeline 8 % faster on the dense seeded scene (one thread).
+const CONVERGED_STEP_PX: f64 = 5e-3;
 
 /// Fits `seeds.len()` spots plus a constant floor to `samples` (x, y, value) starting from the
 /// seeds. `None` when the fit does not converge, or a spot ends implausibly (gone flat or
