@@ -237,16 +237,13 @@ impl CameraLinker {
         let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
         let sorted_x = SortedByX::new(features);
         // Indexed only when some track has no motion yet: most frames of a steady flow have none.
-        let first_steps = (config.predict_new_from_neighbours
-            && config.max_displacement_px > 0.0
-            && self.tracks.iter().any(|t| t.motion.is_none()))
-        .then(|| FirstSteps::new(&self.tracks, features, scale));
+        let new_tracks =
+            config.predict_new_from_neighbours && self.tracks.iter().any(|t| t.motion.is_none());
+        let first_steps = (new_tracks && config.max_displacement_px > 0.0)
+            .then(|| FirstSteps::new(&self.tracks, features, scale));
         // Tracks with a motion, indexed for new tracks to borrow it: a linear search per new
         // track cost a dense frame (4,000 particles) more than its detection.
-        let established = (config.predict_new_from_neighbours
-            && config.neighbours > 0
-            && self.tracks.iter().any(|t| t.motion.is_none()))
-        .then(|| {
+        let established = (new_tracks && config.neighbours > 0).then(|| {
             let with_motion = self.tracks.iter().enumerate();
             PointGrid::new(
                 with_motion.filter_map(|(i, t)| t.motion.map(|_| (t.last.rect, i))),
@@ -568,31 +565,31 @@ impl FirstSteps {
 }
 
 /// The fewest successes, at least 2, with `binomial_tail(n, v, p) < chance`; `None` if even `n`
-/// is not that unlikely. Computed as `binomial_tail` computes the tail, term for term, so the
-/// two agree exactly.
+/// is not that unlikely.
 fn votes_needed(n: usize, p: f64, chance: f64) -> Option<usize> {
-    let mut term = (1.0 - p).powi(n as i32);
-    let mut below = 0.0;
-    for i in 0..n {
-        below += term;
-        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
-        let at_least = i + 1;
-        if at_least >= 2 && (1.0 - below).max(0.0) < chance {
-            return Some(at_least);
-        }
-    }
-    None
+    binomial_tails(n, p)
+        .enumerate()
+        .take(n + 1)
+        .skip(2)
+        .find(|&(_, tail)| tail < chance)
+        .map(|(at_least, _)| at_least)
 }
 
 /// P(X >= at_least) for X ~ Binomial(n, p).
 fn binomial_tail(n: usize, at_least: usize, p: f64) -> f64 {
+    binomial_tails(n, p).nth(at_least.min(n + 1)).unwrap_or(0.0)
+}
+
+/// P(X >= 0), P(X >= 1), ..., P(X >= n + 1) for X ~ Binomial(n, p): one minus the probability
+/// terms summed from below, so every tail is computed the same way wherever it is asked for.
+fn binomial_tails(n: usize, p: f64) -> impl Iterator<Item = f64> {
     let mut term = (1.0 - p).powi(n as i32);
     let mut below = 0.0;
-    for i in 0..at_least.min(n + 1) {
+    std::iter::once(1.0).chain((0..=n).map(move |i| {
         below += term;
         term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
-    }
-    (1.0 - below).max(0.0)
+        (1.0 - below).max(0.0)
+    }))
 }
 
 pub(crate) fn median(values: &mut [f64]) -> f64 {

@@ -737,11 +737,9 @@ impl Pipeline {
         if let Some(learner) = &mut self.depth_learner {
             // Tracks seen this frame for CONFIRMED_SAMPLES frames: ghosts rarely last that long.
             const CONFIRMED_SAMPLES: usize = 5;
-            let focal_baseline = self.rectification.focal_px * self.rectification.baseline_m;
             let confirmed = self.tracks.values().filter_map(|t| {
                 let last = t.samples.back()?;
-                (last.seq == seq && t.samples.len() >= CONFIRMED_SAMPLES)
-                    .then(|| focal_baseline / last.depth_m)
+                (last.seq == seq && t.samples.len() >= CONFIRMED_SAMPLES).then_some(last.depth_m)
             });
             learner.add(seq, confirmed);
         }

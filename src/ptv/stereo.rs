@@ -114,13 +114,7 @@ pub enum SearchError {
 impl StereoSearch {
     pub fn new(config: &StereoConfig, rect: &Rectification) -> Result<Self, SearchError> {
         let fh = rect.focal_px * rect.baseline_m;
-        let depth = |disparity: f64| {
-            if disparity > 0.0 {
-                fh / disparity
-            } else {
-                f64::INFINITY
-            }
-        };
+        let depth = |disparity: f64| depth_at(fh, disparity);
         let (overlap_min, overlap_max) = rect.overlap_disparity_px();
         let (min_disparity_px, max_disparity_px) =
             match (config.disparity_range_fraction, config.depth_range_m) {
@@ -162,20 +156,23 @@ impl StereoSearch {
     pub fn narrowed(&self, min_px: f64, max_px: f64, focal_baseline: f64) -> Self {
         let min_disparity_px = min_px.max(self.min_disparity_px);
         let max_disparity_px = max_px.min(self.max_disparity_px).max(min_disparity_px);
-        let depth = |d: f64| {
-            if d > 0.0 {
-                focal_baseline / d
-            } else {
-                f64::INFINITY
-            }
-        };
         Self {
             min_disparity_px,
             max_disparity_px,
-            near_m: depth(max_disparity_px),
-            far_m: depth(min_disparity_px),
+            near_m: depth_at(focal_baseline, max_disparity_px),
+            far_m: depth_at(focal_baseline, min_disparity_px),
             ..*self
         }
+    }
+}
+
+/// The depth a disparity stands for in a rectified pair with focal length times baseline
+/// `focal_baseline` (px m): infinite at zero disparity or below.
+fn depth_at(focal_baseline: f64, disparity_px: f64) -> f64 {
+    if disparity_px > 0.0 {
+        focal_baseline / disparity_px
+    } else {
+        f64::INFINITY
     }
 }
 
@@ -201,15 +198,19 @@ pub struct DepthLearner {
     focal_baseline: f64,
     recent: VecDeque<(u64, usize)>,
     counts: Vec<usize>,
+    /// What `recent` says, settled once per frame by `add`.
+    narrowed: Option<StereoSearch>,
 }
 
 impl DepthLearner {
+    /// `focal_baseline`: the rectified pair's focal length times baseline, px m.
     pub fn new(full: StereoSearch, focal_baseline: f64) -> Self {
         Self {
             full,
             focal_baseline,
             recent: VecDeque::new(),
             counts: vec![0; LEARN_BINS],
+            narrowed: None,
         }
     }
 
@@ -217,10 +218,12 @@ impl DepthLearner {
         (self.full.max_disparity_px - self.full.min_disparity_px).max(1e-9) / LEARN_BINS as f64
     }
 
-    /// Adds frame `seq`'s confirmed disparities and forgets those that left the window.
-    pub fn add(&mut self, seq: u64, disparities: impl Iterator<Item = f64>) {
+    /// Adds the depths (m) of frame `seq`'s confirmed tracks, forgets those that left the
+    /// window, and settles the search for the next frame.
+    pub fn add(&mut self, seq: u64, depths_m: impl Iterator<Item = f64>) {
         let width = self.bin_width();
-        for d in disparities {
+        for depth_m in depths_m {
+            let d = self.focal_baseline / depth_m;
             if !d.is_finite() {
                 continue;
             }
@@ -236,10 +239,15 @@ impl DepthLearner {
             self.counts[bin] -= 1;
             self.recent.pop_front();
         }
+        self.narrowed = self.learnt();
     }
 
     /// The search narrowed to the learnt volume, or `None` while too few tracks confirm it.
     pub fn search(&self) -> Option<StereoSearch> {
+        self.narrowed
+    }
+
+    fn learnt(&self) -> Option<StereoSearch> {
         let total = self.recent.len();
         if total < LEARN_MIN_SAMPLES {
             return None;
@@ -393,13 +401,14 @@ mod tests {
         };
         let mut learner = DepthLearner::new(full, 36.0);
         let mut rng = crate::synth::Rng::new(5);
-        // 20 confirmed tracks a frame between 60 and 72 px, and one ghost anywhere in 3.
+        // 20 confirmed tracks a frame between 60 and 72 px, and one ghost anywhere in 3; the
+        // learner is given their depths.
         let frame = |rng: &mut crate::synth::Rng, seq: u64| {
             let mut d: Vec<f64> = (0..20).map(|_| rng.range(60.0, 72.0)).collect();
             if seq.is_multiple_of(3) {
                 d.push(rng.range(0.0, 640.0));
             }
-            d
+            d.into_iter().map(|d| 36.0 / d).collect::<Vec<f64>>()
         };
         for seq in 1..=9 {
             let d = frame(&mut rng, seq);
