@@ -490,6 +490,25 @@ impl Rectification {
         })
     }
 
+    fn rect_to_camera(
+        &self,
+        camera: &CameraModel,
+        rect_from_cam: &Rotation3<f64>,
+        p: RectPoint,
+    ) -> Option<PixelPoint> {
+        let ray = rect_from_cam.inverse() * Vector3::new(p.x, p.y, self.focal_px);
+        camera.project(&Point3::from(ray))
+    }
+
+    /// Where a rectified point lies in the raw left image; `None` behind the camera.
+    pub fn rect_to_left(&self, p: RectPoint) -> Option<PixelPoint> {
+        self.rect_to_camera(&self.left, &self.rect_from_left, p)
+    }
+
+    pub fn rect_to_right(&self, p: RectPoint) -> Option<PixelPoint> {
+        self.rect_to_camera(&self.right, &self.rect_from_right, p)
+    }
+
     pub fn left_to_rect(&self, p: PixelPoint) -> Option<RectPoint> {
         self.to_rect(&self.left, &self.rect_from_left, p)
     }
@@ -622,6 +641,31 @@ mod tests {
             .expect("in view");
         assert!((r.x - 100.0).abs() < 1e-9 && (r.y + 100.0).abs() < 1e-9);
         assert!((rect.half_width_px - 319.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn rectified_points_map_back_to_the_raw_pixels_they_came_from() {
+        let rig = hololens_like_rig();
+        let rect = Rectification::new(&rig).expect("valid");
+        for &(x, y) in &[(3.0, 4.0), (320.5, 240.25), (600.0, 30.0), (17.0, 470.0)] {
+            let p = PixelPoint { x, y };
+            for (to, from) in [
+                (
+                    rect.left_to_rect(p).expect("maps"),
+                    rect.rect_to_left(rect.left_to_rect(p).expect("maps")),
+                ),
+                (
+                    rect.right_to_rect(p).expect("maps"),
+                    rect.rect_to_right(rect.right_to_rect(p).expect("maps")),
+                ),
+            ] {
+                let back = from.expect("in front");
+                assert!(
+                    (back.x - x).abs() < 1e-6 && (back.y - y).abs() < 1e-6,
+                    "{to:?}"
+                );
+            }
+        }
     }
 
     #[test]

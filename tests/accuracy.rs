@@ -267,8 +267,8 @@ fn assert_sane(scenario: Scenario, r: &Report) {
 }
 
 /// Dense seeding (`seeded`: 2.5-6 px particles at 0.005 particles per pixel, a quarter to a
-/// third of their images touching). No acceptance bound is met yet (README): these must run
-/// and give mostly correct vectors. Truth is associated within 5 mm, not 2 cm: particles are
+/// third of their images touching). In uniform flow the error and ghost bounds hold (see
+/// below), in turbulence not yet (README): both must run and give mostly correct vectors. Truth is associated within 5 mm, not 2 cm: particles are
 /// 3 cm apart in the slab, so at 2 cm a wrong pair lands near some particle and its error
 /// counts against a particle it never was.
 #[test]
@@ -279,6 +279,37 @@ fn dense_seeding_runs_and_stays_sane() {
         assert_sane(scenario, &r);
         assert!(r.track_rows > 5000, "{scenario}: {} vectors", r.track_rows);
     }
+}
+
+/// Looking again where the tracks expect particles (`detect.separate_expected`) keeps those
+/// merged into one blob with a neighbour: at 0.005 particles per pixel in uniform flow,
+/// measured: yield 52.7 % -> 54.2 %, ghosts 3.4 % -> 2.2 %, errors u 1.68 -> 1.34 %,
+/// w 4.31 -> 3.44 %. On the default config the error and ghost bounds hold there (its
+/// 60 % yield does not yet).
+#[test]
+fn looking_where_tracks_expect_particles_keeps_them_through_overlaps() {
+    let mut shape_only = PipelineConfig::default();
+    shape_only.detect.separate_expected = false;
+    let particles = ScenarioSpec::new(Scenario::Seeded).default_particles;
+    let off = run_with(Scenario::Seeded, Some(shape_only), particles, 0.005, 1);
+    let on = run_with(Scenario::Seeded, None, particles, 0.005, 1);
+    println!(
+        "by shape: ghost {:.4} yield {:.4}; where expected too: ghost {:.4} yield {:.4}",
+        off.ghost_rate, off.measurable_yield, on.ghost_rate, on.measurable_yield
+    );
+    assert!(
+        on.measurable_yield > off.measurable_yield + 0.01 && on.ghost_rate < off.ghost_rate - 0.005,
+        "off {:.4}/{:.4}, on {:.4}/{:.4}",
+        off.measurable_yield,
+        off.ghost_rate,
+        on.measurable_yield,
+        on.ghost_rate
+    );
+    // The bounds at 0.005 particles per pixel: ghosts 3 %, in-plane 2 %, depth 5 %.
+    assert_bounds_yield("seeded 0.005", &on, 1.5, 0.5);
+    assert!(on.ghost_rate <= 0.03, "ghosts {:.4}", on.ghost_rate);
+    let e = &on.relative_rms_velocity_error;
+    assert!(e.x <= 0.02 && e.y <= 0.02 && e.z <= 0.05, "{e:?}");
 }
 
 /// The search narrowed to the depths the tracks show (`stereo.learn_depth_range`) leaves most

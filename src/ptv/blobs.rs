@@ -33,7 +33,7 @@ const CONVERGED_STEP_PX: f64 = 5e-3;
 pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit> {
     // Fixed sizes let the compiler unroll the per-pixel work; regions of more than four
     // particles are not fitted.
-    let (params, cost) = match seeds.len() {
+    let (params, cost, position_sigma_px) = match seeds.len() {
         1 => levenberg_marquardt::<6>(samples, seeds)?,
         2 => levenberg_marquardt::<11>(samples, seeds)?,
         3 => levenberg_marquardt::<16>(samples, seeds)?,
@@ -59,6 +59,7 @@ pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit>
     plausible.then_some(SpotFit {
         spots,
         rms_residual,
+        position_sigma_px,
     })
 }
 
@@ -68,6 +69,9 @@ pub struct SpotFit {
     pub spots: Vec<Spot>,
     /// Root-mean-square difference between the samples and the fitted model, grey levels.
     pub rms_residual: f64,
+    /// Per spot, the standard deviation of its centre (radial, both axes together) that the
+    /// residuals imply through the fit's covariance, pixels.
+    pub position_sigma_px: Vec<f64>,
 }
 
 /// A fit whose residual exceeds this fraction of its weakest spot's amplitude has missed
@@ -80,22 +84,46 @@ const MAX_RELATIVE_RESIDUAL: f64 = 0.05;
 /// scenes, admitting them doubled the out-of-plane error of the vectors they gave.
 const MIN_SEPARATION_IN_HALF_WIDTHS: f64 = 1.0;
 
+/// See [`SpotFit::is_measured`]: 0.05 px gave more vectors on the dense seeded scene, and on
+/// the uniform scene an out-of-plane error of 1.03 % instead of 0.74 %; 0.03 px leaves the
+/// sparse scenes' figures as they were.
+const MAX_POSITION_SIGMA_PX: f64 = 0.03;
+
 impl SpotFit {
     /// Whether the fitted centres are good for measuring: the model explains the pixels and the
     /// spots are far enough apart that each centre is set by its own light.
     pub fn is_trustworthy(&self) -> bool {
-        let weakest = self
-            .spots
-            .iter()
-            .map(|s| s.amplitude)
-            .fold(f64::MAX, f64::min);
         let apart = self.spots.iter().enumerate().all(|(i, a)| {
             self.spots[i + 1..].iter().all(|b| {
                 (a.x - b.x).hypot(a.y - b.y)
                     > MIN_SEPARATION_IN_HALF_WIDTHS * (a.half_width() + b.half_width())
             })
         });
-        self.rms_residual < MAX_RELATIVE_RESIDUAL * weakest && apart
+        self.explains_the_pixels() && apart
+    }
+
+    /// Whether spot `k`'s centre is good for measuring by its own uncertainty: the model
+    /// explains the pixels and the residuals leave the centre within `MAX_POSITION_SIGMA_PX`.
+    /// For spots seeded where tracks expect them; measured on the dense seeded scene, those
+    /// below 0.05 px were as close to the truth as trustworthy fits (median 0.02-0.04 px,
+    /// 90 % within 0.11 px), however close the spots.
+    pub fn is_measured(&self, k: usize) -> bool {
+        self.explains_the_pixels()
+            && self
+                .position_sigma_px
+                .get(k)
+                .is_some_and(|&s| s < MAX_POSITION_SIGMA_PX)
+    }
+
+    /// Whether the model leaves no more unexplained light than noise: no particle missed, none
+    /// of an odd shape.
+    pub fn explains_the_pixels(&self) -> bool {
+        let weakest = self
+            .spots
+            .iter()
+            .map(|s| s.amplitude)
+            .fold(f64::MAX, f64::min);
+        self.rms_residual < MAX_RELATIVE_RESIDUAL * weakest
     }
 }
 
@@ -110,7 +138,7 @@ impl Spot {
 fn levenberg_marquardt<const N: usize>(
     samples: &[(f64, f64, f64)],
     seeds: &[Spot],
-) -> Option<(Vec<f64>, f64)> {
+) -> Option<(Vec<f64>, f64, Vec<f64>)> {
     if samples.len() <= N {
         return None;
     }
@@ -152,7 +180,21 @@ fn levenberg_marquardt<const N: usize>(
             current = next;
             damping = (damping / 3.0).max(1e-9);
             if moved < CONVERGED_STEP_PX {
-                return Some((params.iter().copied().collect(), current.cost));
+                let inverse = current.normal.try_inverse()?;
+                let variance = current.cost / (samples.len() - N) as f64;
+                let position_sigma_px = (0..seeds.len())
+                    .map(|k| {
+                        let (x, y) = (1 + PER_SPOT * k, 2 + PER_SPOT * k);
+                        (variance * (inverse[(x, x)] + inverse[(y, y)]))
+                            .max(0.0)
+                            .sqrt()
+                    })
+                    .collect();
+                return Some((
+                    params.iter().copied().collect(),
+                    current.cost,
+                    position_sigma_px,
+                ));
             }
         } else {
             damping *= 4.0;
@@ -296,6 +338,36 @@ mod tests {
             }
             assert!(fitted.is_trustworthy(), "{fitted:?}");
         }
+    }
+
+    #[test]
+    fn a_centre_is_measured_when_the_pixels_pin_it_down() {
+        // Noise of one grey level: apart, the centres are pinned to a few hundredths of a pixel
+        // and say so; overlapping at under a half-width each, they trade light and the fit's
+        // covariance says that too.
+        let noisy = |truth: &[Spot]| {
+            let mut rng = crate::synth::Rng::new(3);
+            let mut samples = render(truth, 3.0, 26);
+            for s in &mut samples {
+                s.2 += rng.normal();
+            }
+            samples
+        };
+        let apart = [
+            spot(9.3, 10.2, 120.0, 1.5, 1.0),
+            spot(15.6, 11.1, 100.0, 1.5, 1.0),
+        ];
+        let fitted = fit_spots(&noisy(&apart), &cut_seeds(&apart)).expect("fit");
+        assert!(
+            (0..2).all(|k| fitted.is_measured(k)) && fitted.position_sigma_px[0] > 0.001,
+            "{fitted:?}"
+        );
+        let merged = [
+            spot(11.0, 10.2, 120.0, 1.5, 1.0),
+            spot(12.2, 10.6, 100.0, 1.5, 1.0),
+        ];
+        let fitted = fit_spots(&noisy(&merged), &cut_seeds(&merged)).expect("fit");
+        assert!((0..2).all(|k| !fitted.is_measured(k)), "{fitted:?}");
     }
 
     #[test]

@@ -88,6 +88,7 @@ impl PipelineConfig {
         let mut c = Self::default();
         c.detect.split_touching = false;
         c.detect.fit_overlaps = false;
+        c.detect.separate_expected = false;
         c.detect.reject_border = false;
         c.detect.max_axis_ratio = 0.0;
         c.link.assignment = Assignment::PerParticle;
@@ -549,14 +550,24 @@ impl Pipeline {
             (&mut out.detections_left, &mut out.detections_right);
         let ((left, left_raw), (right, right_raw)) = rayon::join(
             || {
-                left_camera.push(frame.left, config, scale, detections_left, |p| {
-                    rect.left_to_rect(p)
-                })
+                left_camera.push(
+                    frame.left,
+                    config,
+                    scale,
+                    detections_left,
+                    |p| rect.left_to_rect(p),
+                    |p| rect.rect_to_left(p),
+                )
             },
             || {
-                right_camera.push(frame.right, config, scale, detections_right, |p| {
-                    rect.right_to_rect(p)
-                })
+                right_camera.push(
+                    frame.right,
+                    config,
+                    scale,
+                    detections_right,
+                    |p| rect.right_to_rect(p),
+                    |p| rect.rect_to_right(p),
+                )
             },
         );
         out.stats.noisy_images = [&self.left.detector, &self.right.detector]
@@ -1235,9 +1246,9 @@ impl Camera {
         }
     }
 
-    /// Detects into `detections` and links the rectified features; returns the linked features
-    /// and, index for index, the detection each came from (detections whose centroid the lens
-    /// model cannot undistort are left out).
+    /// Detects into `detections`, looking again where the tracks expect particles, and links
+    /// the rectified features; returns the linked features and, index for index, the detection
+    /// each came from (detections whose centroid the lens model cannot undistort are left out).
     fn push(
         &mut self,
         image: ImageView<'_>,
@@ -1245,8 +1256,18 @@ impl Camera {
         scale: CostScale,
         detections: &mut Vec<Detection>,
         to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
+        from_rect: impl Fn(RectPoint) -> Option<PixelPoint>,
     ) -> (Vec<LinkedFeature>, Vec<usize>) {
         self.detector.detect(image, &config.detect, detections);
+        if config.detect.separate_expected {
+            let expected: Vec<PixelPoint> = self
+                .linker
+                .expected_positions()
+                .filter_map(&from_rect)
+                .collect();
+            self.detector
+                .separate_expected(image, &config.detect, &expected, detections);
+        }
         let (features, detection_of): (Vec<Feature>, Vec<usize>) = detections
             .iter()
             .enumerate()
