@@ -283,8 +283,8 @@ fn dense_seeding_runs_and_stays_sane() {
 
 /// Looking again where the tracks expect particles (`detect.separate_expected`) keeps those
 /// merged into one blob with a neighbour: at 0.005 particles per pixel in uniform flow,
-/// measured: yield 52.7 % -> 54.2 %, ghosts 3.4 % -> 2.2 %, errors u 1.68 -> 1.34 %,
-/// w 4.31 -> 3.44 %. On the default config the error and ghost bounds hold there (its
+/// measured: yield 52.0 % -> 53.2 %, ghosts 3.4 % -> 2.1 %, errors u 1.66 -> 1.32 %,
+/// w 4.23 -> 3.39 %. On the default config the error and ghost bounds hold there (its
 /// 60 % yield does not yet).
 #[test]
 fn looking_where_tracks_expect_particles_keeps_them_through_overlaps() {
