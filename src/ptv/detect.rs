@@ -207,8 +207,6 @@ pub struct Detector {
     next_background: Vec<u16>,
     /// Per pixel: frames in a row it has been brighter than its model.
     bright_frames: Vec<u8>,
-    /// The first region label of the current image.
-    first_label: u32,
     /// The current image's measured regions, in label order, with the detections each gave.
     resolved: Vec<ResolvedRegion>,
 }
@@ -503,42 +501,24 @@ impl Detector {
             self.labels.fill(0);
             self.next_label = 0;
         }
-        self.first_label = self.next_label + 1;
         self.resolved.clear();
         let mut start = 0;
         while let Some(next) = next_unlabelled(&self.mask, start) {
             start = next;
             self.next_label += 1;
             let label = self.next_label;
-            self.region.clear();
-            self.stack.clear();
-            self.stack.push(Pixel {
-                index: start as u32,
-                x: (start % w) as u32,
-                y: (start / w) as u32,
-            });
-            self.mask[start] = 2;
-            self.labels[start] = label;
-            let mut touches_border = false;
-            while let Some(p) = self.stack.pop() {
-                self.region.push(p);
-                let (x, y) = (p.x as usize, p.y as usize);
-                touches_border |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
-                for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
-                    for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
-                        let j = ny * w + nx;
-                        if self.mask[j] == 1 {
-                            self.mask[j] = 2;
-                            self.labels[j] = label;
-                            self.stack.push(Pixel {
-                                index: j as u32,
-                                x: nx as u32,
-                                y: ny as u32,
-                            });
-                        }
-                    }
+            self.flood_region(w, h, start, |mask, labels, j| {
+                let unlabelled = mask[j] == 1;
+                if unlabelled {
+                    mask[j] = 2;
+                    labels[j] = label;
                 }
-            }
+                unlabelled
+            });
+            let touches_border = self.region.iter().any(|p| {
+                let (x, y) = (p.x as usize, p.y as usize);
+                x == 0 || y == 0 || x + 1 == w || y + 1 == h
+            });
             if self.region.len() < config.min_area_px
                 || self.region.len() > config.max_area_px
                 || (touches_border && config.reject_border)
@@ -563,14 +543,15 @@ impl Detector {
     /// the region's pixels, its spots replace the region's detections: [`Separation::Fitted`]
     /// where the fit is trustworthy, else [`Separation::Cut`] (good for keeping the tracks,
     /// not for measuring). Regions of more than four expected particles are left as they are.
+    /// Called after [`Self::detect`] on the same image, where
+    /// [`DetectConfig::separate_expected`] asks for it.
     pub fn separate_expected(
         &mut self,
         image: ImageView<'_>,
-        config: &DetectConfig,
         expected: &[PixelPoint],
         out: &mut Vec<Detection>,
     ) {
-        if !config.separate_expected || expected.len() < 2 || self.resolved.is_empty() {
+        if expected.len() < 2 || self.resolved.is_empty() {
             return;
         }
         let (w, h) = (image.width as f64, image.height as f64);
@@ -579,9 +560,10 @@ impl Detector {
             .filter(|p| p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0)
             .filter_map(|&p| {
                 let j = nearest_pixel(image, p);
-                if self.mask.get(j) != Some(&2) || self.labels[j] < self.first_label {
+                if self.mask.get(j) != Some(&2) {
                     return None;
                 }
+                // Only the current image's measured regions are in `resolved`.
                 let r = self
                     .resolved
                     .binary_search_by_key(&self.labels[j], |r| r.label)
@@ -664,27 +646,49 @@ impl Detector {
     /// Collects the pixels of the current image's region `label` that holds pixel `from` into
     /// `self.region`.
     fn gather_region(&mut self, image: ImageView<'_>, label: u32, from: usize) {
-        let (w, h) = (image.width, image.height);
-        self.region.clear();
-        self.stack.clear();
         if self.labels.get(from) != Some(&label) {
+            self.region.clear();
             return;
         }
         // Marked as visited by flipping the mask to 3 for the walk, and back after.
+        self.flood_region(image.width, image.height, from, |mask, labels, j| {
+            let unvisited = mask[j] == 2 && labels[j] == label;
+            if unvisited {
+                mask[j] = 3;
+            }
+            unvisited
+        });
+        for p in &self.region {
+            self.mask[p.index as usize] = 2;
+        }
+    }
+
+    /// Walks the 8-connected pixels from `from` that `claim` accepts (it marks each it accepts,
+    /// so none is visited twice) into `self.region`.
+    fn flood_region(
+        &mut self,
+        w: usize,
+        h: usize,
+        from: usize,
+        mut claim: impl FnMut(&mut [u8], &mut [u32], usize) -> bool,
+    ) {
+        self.region.clear();
+        self.stack.clear();
+        if !claim(&mut self.mask, &mut self.labels, from) {
+            return;
+        }
         self.stack.push(Pixel {
             index: from as u32,
             x: (from % w) as u32,
             y: (from / w) as u32,
         });
-        self.mask[from] = 3;
         while let Some(p) = self.stack.pop() {
             self.region.push(p);
             let (x, y) = (p.x as usize, p.y as usize);
             for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
                 for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
                     let j = ny * w + nx;
-                    if self.mask[j] == 2 && self.labels[j] == label {
-                        self.mask[j] = 3;
+                    if claim(&mut self.mask, &mut self.labels, j) {
                         self.stack.push(Pixel {
                             index: j as u32,
                             x: nx as u32,
@@ -693,9 +697,6 @@ impl Detector {
                     }
                 }
             }
-        }
-        for p in &self.region {
-            self.mask[p.index as usize] = 2;
         }
     }
 
@@ -1357,7 +1358,7 @@ mod tests {
         detector.detect(image, &config, &mut out);
         let expected: Vec<PixelPoint> =
             expected.iter().map(|&(x, y)| PixelPoint { x, y }).collect();
-        detector.separate_expected(image, &config, &expected, &mut out);
+        detector.separate_expected(image, &expected, &mut out);
         out
     }
 

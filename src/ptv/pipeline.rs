@@ -1266,7 +1266,7 @@ impl Camera {
                 .filter_map(&from_rect)
                 .collect();
             self.detector
-                .separate_expected(image, &config.detect, &expected, detections);
+                .separate_expected(image, &expected, detections);
         }
         let (features, detection_of): (Vec<Feature>, Vec<usize>) = detections
             .iter()
