@@ -282,17 +282,19 @@ fn dense_seeding_runs_and_stays_sane() {
 }
 
 /// Looking again where the tracks expect particles (`detect.separate_expected`) keeps those
-/// merged into one blob with a neighbour: at 0.005 particles per pixel in uniform flow,
-/// measured: yield 52.0 % -> 53.2 %, ghosts 3.4 % -> 2.1 %, errors u 1.66 -> 1.32 %,
-/// w 4.23 -> 3.39 %. On the default config the error and ghost bounds hold there (its
-/// 60 % yield does not yet).
+/// merged into one blob with a neighbour: at 0.005 particles per pixel in uniform flow, with
+/// the outlier test off in both runs (it drops the wrong pairs either way and would hide the
+/// difference), measured: yield 52.0 % -> 55.6 %, ghosts 3.4 % -> 2.2 %. On the default config
+/// the error and ghost bounds hold there (its 60 % yield does not yet).
 #[test]
 fn looking_where_tracks_expect_particles_keeps_them_through_overlaps() {
-    let mut shape_only = PipelineConfig::default();
+    let mut unchecked = PipelineConfig::default();
+    unchecked.velocity.outlier_neighbours = 0;
+    let mut shape_only = unchecked.clone();
     shape_only.detect.separate_expected = false;
     let particles = ScenarioSpec::new(Scenario::Seeded).default_particles;
     let off = run_with(Scenario::Seeded, Some(shape_only), particles, 0.005, 1);
-    let on = run_with(Scenario::Seeded, None, particles, 0.005, 1);
+    let on = run_with(Scenario::Seeded, Some(unchecked), particles, 0.005, 1);
     println!(
         "by shape: ghost {:.4} yield {:.4}; where expected too: ghost {:.4} yield {:.4}",
         off.ghost_rate, off.measurable_yield, on.ghost_rate, on.measurable_yield
@@ -305,30 +307,83 @@ fn looking_where_tracks_expect_particles_keeps_them_through_overlaps() {
         on.measurable_yield,
         on.ghost_rate
     );
-    // The bounds at 0.005 particles per pixel: ghosts 3 %, in-plane 2 %, depth 5 %.
-    assert_bounds_yield("seeded 0.005", &on, 1.5, 0.5);
-    assert!(on.ghost_rate <= 0.03, "ghosts {:.4}", on.ghost_rate);
-    let e = &on.relative_rms_velocity_error;
+    // The bounds at 0.005 particles per pixel, on the default config: ghosts 3 %,
+    // in-plane 2 %, depth 5 %.
+    let defaults = run_with(Scenario::Seeded, None, particles, 0.005, 1);
+    assert_bounds_yield("seeded 0.005", &defaults, 1.5, 0.5);
+    assert!(
+        defaults.ghost_rate <= 0.03,
+        "ghosts {:.4}",
+        defaults.ghost_rate
+    );
+    let e = &defaults.relative_rms_velocity_error;
     assert!(e.x <= 0.02 && e.y <= 0.02 && e.z <= 0.05, "{e:?}");
 }
 
+/// Vectors that stray from their neighbours (`velocity.outlier_neighbours`) are dropped: in
+/// creeping flow, biased centroids of slowly passing neighbours give smooth tracks with wrong
+/// velocities that no track's own smoothness reveals. Measured: outliers (error above 20 % of
+/// the mean speed) 4.7 % -> 0.4 %, w error 10.3 % -> 4.1 %, measurable yield 74.9 % -> 69.3 %
+/// (most of what is lost was those outliers).
+#[test]
+fn vectors_straying_from_their_neighbours_are_dropped() {
+    let mut unchecked = PipelineConfig::default();
+    unchecked.velocity.outlier_neighbours = 0;
+    let off = run(Scenario::Creep, Some(unchecked), 1);
+    let on = run(Scenario::Creep, None, 1);
+    println!(
+        "unchecked: {:?} outliers {:.4} yield {:.4}; checked: {:?} outliers {:.4} yield {:.4}",
+        off.relative_rms_velocity_error,
+        off.outlier_rate,
+        off.measurable_yield,
+        on.relative_rms_velocity_error,
+        on.outlier_rate,
+        on.measurable_yield
+    );
+    assert!(off.outlier_rate > 0.03, "{:.4}", off.outlier_rate);
+    assert!(on.outlier_rate < 0.01, "{:.4}", on.outlier_rate);
+    let (e_off, e_on) = (
+        &off.relative_rms_velocity_error,
+        &on.relative_rms_velocity_error,
+    );
+    assert!(
+        e_on.z < 0.05 && e_on.z < e_off.z / 2.0,
+        "{e_off:?} -> {e_on:?}"
+    );
+    assert!(
+        e_on.x < e_off.x && e_on.y < e_off.y,
+        "{e_off:?} -> {e_on:?}"
+    );
+    assert!(
+        on.measurable_yield > off.measurable_yield - 0.07,
+        "{:.4} -> {:.4}",
+        off.measurable_yield,
+        on.measurable_yield
+    );
+}
+
 /// The search narrowed to the depths the tracks show (`stereo.learn_depth_range`) leaves most
-/// wrong pairs out of a dense seeding: at 0.002 particles per pixel, ghosts 0.98 % -> 0.21 %
-/// and yield 74 % -> 78 % (measured).
+/// wrong pairs out of a dense seeding: at 0.002 particles per pixel, with the outlier test off
+/// in both runs (it drops most of those wrong pairs too), ghosts 0.95 % -> 0.23 % and yield
+/// 78.7 % -> 82.9 % (measured). On the default config, ghosts 0.00 %.
 #[test]
 fn learning_the_depth_range_cuts_ghosts_in_a_dense_seeding() {
-    let mut full_search = PipelineConfig::default();
+    let mut unchecked = PipelineConfig::default();
+    unchecked.velocity.outlier_neighbours = 0;
+    let mut full_search = unchecked.clone();
     full_search.stereo.learn_depth_range = false;
     let radius = EvalOptions::default().radius_m;
     let off = run_with(Scenario::Seeded, Some(full_search), 615, radius, 1);
-    let on = run_with(Scenario::Seeded, None, 615, radius, 1);
+    let on = run_with(Scenario::Seeded, Some(unchecked), 615, radius, 1);
     println!(
         "full search: ghost {:.4} yield {:.4}; learnt: ghost {:.4} yield {:.4}",
         off.ghost_rate, off.measurable_yield, on.ghost_rate, on.measurable_yield
     );
     assert!(off.ghost_rate > 0.005, "{:.4}", off.ghost_rate);
     assert!(on.ghost_rate <= 0.005, "{:.4}", on.ghost_rate);
-    assert_bounds_yield("seeded 0.002 learnt", &on, 1.0, 0.75);
+    let defaults = run_with(Scenario::Seeded, None, 615, radius, 1);
+    assert!(defaults.ghost_rate <= 0.005, "{:.4}", defaults.ghost_rate);
+    assert_bounds_yield("seeded 0.002 learnt", &defaults, 1.0, 0.75);
 }
 
 /// The live server's causal estimates (no latency: a line through the last 2M + 1 frames,

@@ -93,13 +93,19 @@ impl SpotFit {
     /// Whether the fitted centres are good for measuring: the model explains the pixels and the
     /// spots are far enough apart that each centre is set by its own light.
     pub fn is_trustworthy(&self) -> bool {
-        let apart = self.spots.iter().enumerate().all(|(i, a)| {
-            self.spots[i + 1..].iter().all(|b| {
-                (a.x - b.x).hypot(a.y - b.y)
-                    > MIN_SEPARATION_IN_HALF_WIDTHS * (a.half_width() + b.half_width())
-            })
-        });
+        let apart = (0..self.spots.len()).all(|k| self.is_apart(k, MIN_SEPARATION_IN_HALF_WIDTHS));
         self.explains_the_pixels() && apart
+    }
+
+    /// Whether spot `k` lies more than `half_widths` times the sum of their half widths from
+    /// every other spot.
+    pub fn is_apart(&self, k: usize, half_widths: f64) -> bool {
+        let Some(a) = self.spots.get(k) else {
+            return false;
+        };
+        self.spots.iter().enumerate().all(|(j, b)| {
+            j == k || (a.x - b.x).hypot(a.y - b.y) > half_widths * (a.half_width() + b.half_width())
+        })
     }
 
     /// Whether spot `k`'s centre is good for measuring by its own uncertainty: the model

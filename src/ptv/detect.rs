@@ -576,7 +576,15 @@ impl Detector {
         for group in claims.chunk_by(|a, b| a.0 == b.0) {
             let region = self.resolved[group[0].0];
             let k = group.len();
-            if k <= region.count.max(1) || k > MAX_SPOTS_PER_REGION {
+            // A region only cut by shape, whose every part a track expects, is fitted again
+            // from the expectations: the cut's parts are biased towards each other, the
+            // expectations are not.
+            let only_cut = k >= 2
+                && k == region.count
+                && out[region.first..region.first + region.count]
+                    .iter()
+                    .all(|d| d.separation == Separation::Cut);
+            if (k <= region.count.max(1) && !only_cut) || k > MAX_SPOTS_PER_REGION {
                 continue;
             }
             // Two tracks expecting one spot are one particle followed twice, not two.
@@ -607,7 +615,9 @@ impl Detector {
                 .iter()
                 .enumerate()
                 .map(|(k, spot)| {
-                    let separation = if trusted || fit.is_measured(k) {
+                    let apart =
+                        !only_cut || fit.is_apart(k, CUT_REFIT_MIN_SEPARATION_IN_HALF_WIDTHS);
+                    let separation = if trusted || (fit.is_measured(k) && apart) {
                         Separation::Fitted
                     } else {
                         Separation::Cut
@@ -1048,6 +1058,13 @@ const MAX_SPOTS_PER_REGION: usize = 4;
 /// Tracks expecting particles closer than this are taken to follow the same one.
 const MIN_EXPECTED_APART_PX: f64 = 1.0;
 
+/// A region only cut by shape and fitted again from its tracks' expectations: a spot counts as
+/// measured only this far from the others (in sums of half widths; trustworthy fits need 1).
+/// Closer ones, measured in turbulence, came out pinned by the fit's covariance but biased by
+/// the spot model's mismatch: at 0 the turbulence scene's out-of-plane error rose from 2.15 %
+/// to 3.09 % (yield 87.0 -> 95.4 %); at 0.85, 2.52 % (yield 91.1 %); at 1, 2.50 % (yield 87.1 %).
+const CUT_REFIT_MIN_SEPARATION_IN_HALF_WIDTHS: f64 = 0.85;
+
 /// Index of the pixel nearest a point of the image (clamped to the image).
 fn nearest_pixel(image: ImageView<'_>, at: PixelPoint) -> usize {
     (at.y.round() as usize).min(image.height - 1) * image.width
@@ -1385,6 +1402,34 @@ mod tests {
         assert_eq!(detect_expecting(w, &img, &expected[..1]), alone);
         assert_eq!(
             detect_expecting(w, &img, &[(14.7, 11.7), (14.9, 11.9)]),
+            alone
+        );
+    }
+
+    #[test]
+    fn a_pair_only_cut_is_measured_where_its_tracks_expect_it() {
+        // Two spots (sigma 1.5 px) 3.8 px apart: no dip, and the fit seeded from the shape's
+        // cut is too close to trust, so both are only cut, 0.19 px off.
+        let w = 32;
+        let truth = [(13.0, 11.0), (16.572, 12.292)];
+        let img = gaussian_spots(w, 24, 1.5, &truth);
+        let alone = detect(w, &img, &DetectConfig::default());
+        assert_eq!(alone.len(), 2, "{alone:?}");
+        assert!(alone.iter().all(|d| d.separation == Separation::Cut));
+        assert!(worst_error(&truth, &alone) > 0.15, "{alone:?}");
+        // Both tracks expecting their particle, 0.3-0.4 px off: fitted from there, measured.
+        let expected = [(12.7, 11.3), (16.9, 12.1)];
+        let found = detect_expecting(w, &img, &expected);
+        assert_eq!(found.len(), 2, "{found:?}");
+        assert!(
+            found.iter().all(|d| d.separation == Separation::Fitted),
+            "{found:?}"
+        );
+        assert!(worst_error(&truth, &found) < 0.02, "{found:?}");
+        // Only one of them expected (the other expectation falls on the background): the cut
+        // stands.
+        assert_eq!(
+            detect_expecting(w, &img, &[expected[0], (28.0, 20.0)]),
             alone
         );
     }

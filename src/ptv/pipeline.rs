@@ -9,7 +9,10 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::detect::{DetectConfig, Detection, Detector, Separation};
-use super::kinematics::{fit_adaptive, fit_line, fit_quadratic, FitChoice, QuadraticWindow};
+use super::kinematics::{
+    fit_adaptive, fit_line, fit_quadratic, neighbour_outliers, FitChoice, NeighbourTest,
+    QuadraticWindow,
+};
 use super::link::PointGrid;
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use super::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
@@ -52,6 +55,18 @@ pub struct VelocityConfig {
     /// the window still ends M frames after the centre. 0 (the method), or at most M leaves it
     /// out.
     pub line_past_frames: usize,
+    /// Each frame's vectors (centred, and causal among themselves) are compared with their
+    /// `outlier_neighbours` nearest (in space) and a vector is dropped when a component differs from the neighbours' median by
+    /// more than `outlier_threshold` times their median deviation plus `outlier_noise_fraction`
+    /// of their median speed, where the neighbours agree in every component to within
+    /// `outlier_coherence` of their speed (universal outlier detection, Westerweel & Scarano
+    /// 2005; `kinematics::neighbour_outliers`). Catches what each track's own smoothness cannot:
+    /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
+    /// 0: off (the method).
+    pub outlier_neighbours: usize,
+    pub outlier_threshold: f64,
+    pub outlier_noise_fraction: f64,
+    pub outlier_coherence: f64,
 }
 
 impl Default for VelocityConfig {
@@ -65,6 +80,10 @@ impl Default for VelocityConfig {
             adaptive_fit: true,
             min_window_travel_px: 60.0,
             line_past_frames: 15,
+            outlier_neighbours: 8,
+            outlier_threshold: 4.0,
+            outlier_noise_fraction: 0.02,
+            outlier_coherence: 0.05,
         }
     }
 }
@@ -106,6 +125,7 @@ impl PipelineConfig {
         c.velocity.adaptive_fit = false;
         c.velocity.min_window_travel_px = 0.0;
         c.velocity.line_past_frames = 0;
+        c.velocity.outlier_neighbours = 0;
         c.link.max_displacement_px = 0.0;
         c.link.fixture_frames = 0;
         c.detect.noise_sigmas = 0.0;
@@ -153,6 +173,18 @@ impl PipelineConfig {
             (
                 "link.rejoin_tolerance_sigmas",
                 self.link.rejoin_tolerance_sigmas,
+            ),
+            (
+                "velocity.outlier_threshold",
+                self.velocity.outlier_threshold,
+            ),
+            (
+                "velocity.outlier_noise_fraction",
+                self.velocity.outlier_noise_fraction,
+            ),
+            (
+                "velocity.outlier_coherence",
+                self.velocity.outlier_coherence,
             ),
             ("detect.noise_sigmas", self.detect.noise_sigmas),
             (
@@ -274,6 +306,8 @@ pub struct FrameStats {
     pub causal_vectors: usize,
     /// Centred vectors dropped by the smoothness check.
     pub rejected: usize,
+    /// Centred vectors dropped for straying from their neighbours (`velocity.outlier_neighbours`).
+    pub outliers: usize,
     /// Features that continue a track from an earlier frame, per camera.
     pub linked_left: usize,
     pub linked_right: usize,
@@ -307,6 +341,7 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.vectors += s.vectors;
         self.causal_vectors += s.causal_vectors;
         self.rejected += s.rejected;
+        self.outliers += s.outliers;
         self.linked_left += s.linked_left;
         self.linked_right += s.linked_right;
         self.stereo_candidates += s.stereo_candidates;
@@ -755,25 +790,38 @@ impl Pipeline {
             learner.add(seq, confirmed);
         }
         self.retired.retain(|t| seq - Self::last_seq(t) <= m);
+        let mut centred = Vec::new();
         for track in self.tracks.values().chain(&self.retired) {
             match self.centred_vector(track, seq) {
-                Some(Ok((v, choice))) => {
-                    out.vectors.push(v);
-                    for c in choice.iter().flatten() {
-                        if c.order == 1 {
-                            out.stats.fit_components_line += 1;
-                        } else if c.order > 2 {
-                            out.stats.fit_components_cubic += 1;
-                        } else if usize::from(c.half_window_frames) < m as usize {
-                            out.stats.fit_components_narrower += 1;
-                        }
-                    }
-                }
+                Some(Ok(found)) => centred.push(found),
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
             }
             if let Some(v) = self.causal_vector(track, seq) {
                 out.causal_vectors.push(v);
+            }
+        }
+        // Live causal vectors are judged too: the holograms should not show what the
+        // recording will drop.
+        let test = self.neighbour_test();
+        let mut causal_outliers = outliers_among(out.causal_vectors.iter(), &test).into_iter();
+        out.causal_vectors
+            .retain(|_| !causal_outliers.next().unwrap_or(false));
+        let outliers = outliers_among(centred.iter().map(|(v, _)| v), &test);
+        for ((v, choice), outlier) in centred.into_iter().zip(outliers) {
+            if outlier {
+                out.stats.outliers += 1;
+                continue;
+            }
+            out.vectors.push(v);
+            for c in choice.iter().flatten() {
+                if c.order == 1 {
+                    out.stats.fit_components_line += 1;
+                } else if c.order > 2 {
+                    out.stats.fit_components_cubic += 1;
+                } else if usize::from(c.half_window_frames) < m as usize {
+                    out.stats.fit_components_narrower += 1;
+                }
             }
         }
         out.centred_frame = (self.recent_frames.len() == m as usize + 1)
@@ -786,6 +834,16 @@ impl Pipeline {
         out.stats.vectors = out.vectors.len();
         out.stats.causal_vectors = out.causal_vectors.len();
         Ok(out)
+    }
+
+    fn neighbour_test(&self) -> NeighbourTest {
+        let v = &self.config.velocity;
+        NeighbourTest {
+            neighbours: v.outlier_neighbours,
+            threshold: v.outlier_threshold,
+            noise_fraction: v.outlier_noise_fraction,
+            coherence: v.outlier_coherence,
+        }
     }
 
     /// Fit residual above which a track is judged rough, for a sample at `depth_m`; `None` when
@@ -1229,6 +1287,17 @@ impl Pipeline {
             m
         }
     }
+}
+
+/// Which of a frame's vectors stray from their neighbours (see `kinematics::neighbour_outliers`).
+fn outliers_among<'a>(
+    vectors: impl Iterator<Item = &'a VelocityVector>,
+    test: &NeighbourTest,
+) -> Vec<bool> {
+    let vectors: Vec<_> = vectors
+        .map(|v| (v.position_in_world, v.velocity_in_world))
+        .collect();
+    neighbour_outliers(&vectors, test)
 }
 
 /// One camera's stages, which need nothing from the other camera: detection, rectification and
