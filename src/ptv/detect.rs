@@ -584,7 +584,8 @@ impl Detector {
                 && out[region.first..region.first + region.count]
                     .iter()
                     .all(|d| d.separation == Separation::Cut);
-            if (k <= region.count.max(1) && !only_cut) || k > MAX_SPOTS_PER_REGION {
+            let more_expected_than_found = k > region.count.max(1);
+            if !(more_expected_than_found || only_cut) || k > MAX_SPOTS_PER_REGION {
                 continue;
             }
             // Two tracks expecting one spot are one particle followed twice, not two.

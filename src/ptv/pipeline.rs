@@ -56,10 +56,10 @@ pub struct VelocityConfig {
     /// out.
     pub line_past_frames: usize,
     /// Each frame's vectors (centred, and causal among themselves) are compared with their
-    /// `outlier_neighbours` nearest (in space) and a vector is dropped when a component differs from the neighbours' median by
-    /// more than `outlier_threshold` times their median deviation plus `outlier_noise_fraction`
-    /// of their median speed, where the neighbours agree in every component to within
-    /// `outlier_coherence` of their speed (universal outlier detection, Westerweel & Scarano
+    /// `outlier_neighbours` nearest (in space) and a vector is dropped when a component differs
+    /// from the neighbours' median by more than `outlier_threshold` times their median
+    /// deviation plus `outlier_noise_fraction` of their median speed, where the neighbours
+    /// agree in every component to within `outlier_coherence` of their speed (universal outlier detection, Westerweel & Scarano
     /// 2005; `kinematics::neighbour_outliers`). Catches what each track's own smoothness cannot:
     /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
     /// 0: off (the method).
