@@ -24,7 +24,7 @@ use crate::protocol::{
     FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage, PROTOCOL_VERSION,
 };
 use crate::ptv::PipelineConfig;
-use crate::recording::{encode_gray_png, read_gray_png, Recording, RecordingError};
+use crate::recording::{read_gray_png, Recording, RecordingError};
 use crate::synth::{ScenarioSpec, Synthesizer};
 use crate::tables;
 
@@ -94,13 +94,15 @@ impl FrameSource for RecordingSource {
         let (w, h) = (self.recording.rig.width, self.recording.rig.height);
         let read = |path: std::path::PathBuf| -> Result<Vec<u8>, ClientError> {
             match self.encoding {
-                Encoding::Raw8 => Ok(read_gray_png(&path, w, h)?),
                 Encoding::Png => std::fs::read(&path).map_err(|error| {
                     ClientError::Source(RecordingError::Io {
                         path: path.clone(),
                         error,
                     })
                 }),
+                other => other
+                    .encode_image(&read_gray_png(&path, w, h)?, w, h)
+                    .map_err(ClientError::Image),
             }
         };
         Some((|| {
@@ -176,7 +178,8 @@ impl FrameSource for SyntheticSource {
         let lap_frames = self.lap * self.frames_per_lap as u64;
         let encode = |pixels: Vec<u8>| match self.encoding {
             Encoding::Raw8 => Ok(pixels),
-            Encoding::Png => encode_gray_png(&pixels, self.spec.rig.width, self.spec.rig.height)
+            other => other
+                .encode_image(&pixels, self.spec.rig.width, self.spec.rig.height)
                 .map_err(ClientError::Image),
         };
         Some((|| {

@@ -27,7 +27,8 @@
 //! - [`offline`]: the offline commands' work (`synth`, `process`, `demo`), shared by the binary
 //!   and the tests.
 //! - [`protocol`]: the live wire protocol (`protocol/README.md`): JSON control messages, binary
-//!   stereo frames and vector batches, coordinate conventions. Pure encode/decode.
+//!   stereo frames and vector batches, coordinate conventions. Pure encode/decode; [`sparse`] is
+//!   the image encoding that fits a headset's Wi-Fi.
 //! - [`server`]: `mrptv serve` (axum + tokio). A headset connection hands frames to its session's
 //!   pipeline thread through a bounded drop-oldest queue; the pipeline thread sends the headset
 //!   its [`protocol::Batch`]es, publishes them to viewers and feeds the session's recorder thread.
@@ -62,6 +63,7 @@ pub mod recording;
 pub mod rerun_log;
 #[cfg(feature = "service")]
 pub mod server;
+pub mod sparse;
 pub mod synth;
 pub mod tables;
 #[cfg(feature = "service")]

@@ -11,6 +11,7 @@ use nalgebra::Isometry3;
 
 use crate::eval::{evaluate, EvalError, EvalOptions, Report};
 
+use crate::protocol::Encoding;
 use crate::ptv::{
     FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
     StereoSearch,
@@ -28,6 +29,8 @@ pub enum OfflineError {
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
     Eval(#[from] EvalError),
+    #[error("images through the {encoding:?} encoding: {message}")]
+    Wire { encoding: Encoding, message: String },
     #[error("{path}: {error}")]
     Io {
         path: PathBuf,
@@ -525,9 +528,66 @@ pub struct InMemoryRun {
     pub totals: RunTotals,
     pub report: Report,
     pub scene: SynthSummary,
+    pub wire: WireSummary,
+}
+
+/// What a run's images cost on a headset's link in a frame encoding.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WireSummary {
+    pub encoding: Encoding,
+    pub images: usize,
+    pub bytes: u64,
+    /// Encoding (the headset's work) and decoding (the server's), all images, seconds.
+    pub encode_s: f64,
+    pub decode_s: f64,
+}
+
+impl WireSummary {
+    pub fn bytes_per_pair(&self) -> f64 {
+        2.0 * self.bytes as f64 / self.images.max(1) as f64
+    }
+
+    /// Megabits a second at `pairs_per_s` stereo pairs a second.
+    pub fn mbit_per_s(&self, pairs_per_s: f64) -> f64 {
+        self.bytes_per_pair() * 8.0 * pairs_per_s / 1e6
+    }
+
+    pub fn encode_ms_per_image(&self) -> f64 {
+        1e3 * self.encode_s / self.images.max(1) as f64
+    }
+
+    pub fn decode_ms_per_image(&self) -> f64 {
+        1e3 * self.decode_s / self.images.max(1) as f64
+    }
 }
 
 pub fn run_in_memory(
+    spec: ScenarioSpec,
+    config: PipelineConfig,
+    frames: usize,
+    particles: usize,
+    seed: u64,
+    eval: &EvalOptions,
+    progress: impl FnMut(usize),
+) -> Result<InMemoryRun, OfflineError> {
+    run_in_memory_over(
+        Encoding::Raw8,
+        spec,
+        config,
+        frames,
+        particles,
+        seed,
+        eval,
+        progress,
+    )
+}
+
+/// A synthetic run whose images go through a frame encoding (encoded as a headset would,
+/// decoded as the server does) before the pipeline: what that encoding costs in accuracy and
+/// bandwidth.
+#[allow(clippy::too_many_arguments)]
+pub fn run_in_memory_over(
+    wire: Encoding,
     spec: ScenarioSpec,
     config: PipelineConfig,
     frames: usize,
@@ -538,6 +598,33 @@ pub fn run_in_memory(
 ) -> Result<InMemoryRun, OfflineError> {
     let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
     let pixels = spec.rig.width as usize * spec.rig.height as usize;
+    let (width, height) = (spec.rig.width, spec.rig.height);
+    let mut summary = WireSummary {
+        encoding: wire,
+        images: 0,
+        bytes: 0,
+        encode_s: 0.0,
+        decode_s: 0.0,
+    };
+    let mut through_wire = |image: Vec<u8>| -> Result<Vec<u8>, OfflineError> {
+        summary.images += 1;
+        if wire == Encoding::Raw8 {
+            summary.bytes += image.len() as u64;
+            return Ok(image);
+        }
+        let failed = |message| OfflineError::Wire {
+            encoding: wire,
+            message,
+        };
+        let started = Instant::now();
+        let sent = wire.encode_image(&image, width, height).map_err(failed)?;
+        let encoded = Instant::now();
+        let received = wire.decode_image(&sent, width, height).map_err(failed)?;
+        summary.encode_s += (encoded - started).as_secs_f64();
+        summary.decode_s += encoded.elapsed().as_secs_f64();
+        summary.bytes += sent.len() as u64;
+        Ok(received)
+    };
     let mut synth = Synthesizer::new(spec, particles, seed);
     let mut scene = SynthSummary::default();
     let mut truth = Vec::new();
@@ -545,7 +632,9 @@ pub fn run_in_memory(
     let mut causal_tracks = Vec::new();
     let mut totals = RunTotals::for_pipeline(&pipeline);
     for n in 0..frames {
-        let f = synth.next_frame();
+        let mut f = synth.next_frame();
+        f.left = through_wire(std::mem::take(&mut f.left))?;
+        f.right = through_wire(std::mem::take(&mut f.right))?;
         let output = push_pixels(
             &mut pipeline,
             &mut totals,
@@ -569,6 +658,7 @@ pub fn run_in_memory(
         totals,
         report,
         scene,
+        wire: summary,
     })
 }
 

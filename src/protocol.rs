@@ -112,7 +112,7 @@ impl std::str::FromStr for Convention {
 impl std::str::FromStr for Encoding {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        from_wire_name(s, "raw8, png")
+        from_wire_name(s, "raw8, png, sparse")
     }
 }
 
@@ -125,6 +125,9 @@ pub enum Encoding {
     Raw8,
     /// A PNG file holding an 8-bit grayscale image of the declared size.
     Png,
+    /// The pixels that can belong to a particle, exact, and the background per block
+    /// ([`crate::sparse`]): a tenth of PNG's size or less, for a headset's Wi-Fi.
+    Sparse,
 }
 
 impl Encoding {
@@ -132,6 +135,7 @@ impl Encoding {
         match self {
             Encoding::Raw8 => 0,
             Encoding::Png => 1,
+            Encoding::Sparse => 2,
         }
     }
 
@@ -139,7 +143,42 @@ impl Encoding {
         match code {
             0 => Some(Encoding::Raw8),
             1 => Some(Encoding::Png),
+            2 => Some(Encoding::Sparse),
             _ => None,
+        }
+    }
+
+    /// An 8-bit grayscale image (`width * height` bytes) as this encoding sends it (`sparse`
+    /// with its default settings).
+    pub fn encode_image(self, pixels: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+        match self {
+            Encoding::Raw8 => Ok(pixels.to_vec()),
+            Encoding::Png => crate::recording::encode_gray_png(pixels, width, height),
+            Encoding::Sparse => Ok(crate::sparse::encode(
+                pixels,
+                width,
+                height,
+                &crate::sparse::SparseParams::default(),
+            )),
+        }
+    }
+
+    /// The pixels of an image sent in this encoding, checked against the session's size.
+    pub fn decode_image(self, bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+        match self {
+            Encoding::Raw8 => {
+                let expected = width as usize * height as usize;
+                if bytes.len() == expected {
+                    Ok(bytes.to_vec())
+                } else {
+                    Err(format!(
+                        "{} bytes, a {width}x{height} raw8 image has {expected}",
+                        bytes.len()
+                    ))
+                }
+            }
+            Encoding::Png => crate::recording::decode_gray_png(bytes, width, height),
+            Encoding::Sparse => crate::sparse::decode(bytes, width, height),
         }
     }
 }
@@ -171,10 +210,12 @@ pub struct Hello {
 
 /// Messages a headset sends as text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case")]
+// Unit variants of an internally tagged enum take any extra field; empty struct variants
+// refuse them, as the schemas and the Versioning section say.
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum HeadsetMessage {
     Hello(Box<Hello>),
-    Bye,
+    Bye {},
 }
 
 /// Messages a viewer sends as text.
@@ -187,8 +228,8 @@ pub enum ViewerMessage {
         #[serde(default = "default_viewer_convention")]
         convention: Convention,
     },
-    Unsubscribe,
-    List,
+    Unsubscribe {},
+    List {},
     /// Answered at once by a `pong` with the same `id`: a browser cannot see WebSocket pings,
     /// and needs the round trip to estimate latency.
     Ping {
@@ -422,6 +463,16 @@ pub fn parse_text<T: serde::de::DeserializeOwned>(
             return Err(ProtocolError::new(
                 ErrorCode::UnsupportedVersion,
                 format!("protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"),
+            ));
+        }
+    }
+    // What is wrong inside `rig` or `config` gets their own codes, whatever it is (an unknown
+    // key, a wrong type, a refused value): the client learns which object to fix.
+    if let Some(rig) = value.get("rig").filter(|_| kind == "hello") {
+        if let Err(e) = serde_json::from_value::<RigFile>(rig.clone()) {
+            return Err(ProtocolError::new(
+                ErrorCode::BadCalibration,
+                format!("bad \"rig\" in hello: {e}"),
             ));
         }
     }
@@ -886,7 +937,45 @@ mod tests {
         );
         assert!(matches!(
             parse_text::<HeadsetMessage>(r#"{"type":"bye"}"#, HEADSET_TYPES),
-            Ok(HeadsetMessage::Bye)
+            Ok(HeadsetMessage::Bye {})
         ));
+        assert_eq!(
+            code(r#"{"type":"bye","reason":"done"}"#),
+            ErrorCode::MalformedJson,
+            "a field bye does not have"
+        );
+        let hello = |rig: &str| {
+            format!(
+                r#"{{"type":"hello","protocol":1,"client":"c","rig":{rig},"image":{{"width":4,"height":2,"encoding":"raw8"}}}}"#
+            )
+        };
+        assert_eq!(
+            code(&hello(
+                r#"{"image_size":[4,2],"K1":[[1,0,0],[0,1,0],[0,0,1]],"typo":1}"#
+            )),
+            ErrorCode::BadCalibration,
+            "anything wrong inside rig is the calibration's"
+        );
+        assert_eq!(code(&hello(r#"[]"#)), ErrorCode::BadCalibration);
+        assert_eq!(
+            code(&hello(r#"{}"#).replace("\"client\":\"c\",", "")),
+            ErrorCode::BadCalibration,
+            "the rig is read before the rest of hello"
+        );
+        let viewer = |t: &str| {
+            parse_text::<ViewerMessage>(t, VIEWER_TYPES)
+                .map_err(|e| e.code)
+                .err()
+        };
+        assert_eq!(viewer(r#"{"type":"list"}"#), None);
+        assert_eq!(viewer(r#"{"type":"unsubscribe"}"#), None);
+        for extra in [
+            r#"{"type":"list","all":true}"#,
+            r#"{"type":"unsubscribe","session":"s1"}"#,
+            r#"{"type":"ping","id":1,"at":2}"#,
+            r#"{"type":"subscribe","session":"*","format":"x"}"#,
+        ] {
+            assert_eq!(viewer(extra), Some(ErrorCode::MalformedJson), "{extra}");
+        }
     }
 }

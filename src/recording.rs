@@ -156,7 +156,16 @@ pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>,
     use image::ImageDecoder;
     let decoder = image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
         .map_err(|e| format!("not a readable PNG: {e}"))?;
-    // 1-, 2- and 4-bit grayscale would be expanded silently; the contract is 8-bit.
+    // The decoder reports 1-, 2- and 4-bit grayscale as the 8-bit it expands them to, so the
+    // header says what was sent: its bit depth and colour type follow the signature, the IHDR
+    // chunk's length and name, width and height (the decoder has checked that header).
+    if let (Some(&depth), Some(&colour)) = (bytes.get(24), bytes.get(25)) {
+        if (depth, colour) != (8, 0) {
+            return Err(format!(
+                "expected 8-bit grayscale, found a PNG of colour type {colour} at {depth} bits"
+            ));
+        }
+    }
     let original = decoder.original_color_type();
     if original != image::ExtendedColorType::L8 {
         return Err(format!("expected 8-bit grayscale, found {original:?}"));
@@ -456,9 +465,33 @@ mod tests {
         assert!(decode_gray_png(&rgb, 4, 4)
             .unwrap_err()
             .starts_with("expected 8-bit grayscale"));
+        for depth in [png::BitDepth::One, png::BitDepth::Two, png::BitDepth::Four] {
+            let packed = sub_byte_gray_png(depth);
+            assert!(
+                decode_gray_png(&packed, 4, 4)
+                    .unwrap_err()
+                    .starts_with("expected 8-bit grayscale"),
+                "{depth:?}"
+            );
+        }
         let gray = encode_gray_png(&[0u8; 16], 4, 4).expect("encode");
         assert!(decode_gray_png(&gray, 5, 4)
             .unwrap_err()
             .contains("image is 4x4, rig.json image_size is 5x4"));
+    }
+
+    /// A 4x4 grayscale PNG packed at fewer than 8 bits a pixel.
+    pub(crate) fn sub_byte_gray_png(depth: png::BitDepth) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        let mut encoder = png::Encoder::new(&mut bytes, 4, 4);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(depth);
+        let row_bytes = (4 * depth as usize).div_ceil(8);
+        let mut writer = encoder.write_header().expect("header");
+        writer
+            .write_image_data(&vec![0u8; row_bytes * 4])
+            .expect("data");
+        writer.finish().expect("finish");
+        bytes
     }
 }

@@ -869,3 +869,225 @@ async fn a_rerun_viewer_going_away_mid_session_loses_nothing_else() {
     assert_eq!(again.counters.map(|c| c.frames_processed), Some(45));
     server.stop().await;
 }
+
+/// Reads until the server closes: every text message before the close, and the close code.
+async fn until_closed(ws: &mut Socket) -> (Vec<ServerMessage>, Option<u16>) {
+    let mut texts = Vec::new();
+    loop {
+        let m = tokio::time::timeout(Duration::from_secs(20), ws.next())
+            .await
+            .expect("the server closes within 20 s");
+        match m {
+            Some(Ok(Message::Text(t))) => {
+                texts.push(serde_json::from_str(t.as_str()).expect("server JSON"))
+            }
+            Some(Ok(Message::Close(frame))) => {
+                return (texts, frame.map(|f| u16::from(f.code)));
+            }
+            Some(Ok(_)) => {}
+            Some(Err(e)) => panic!("not a clean close: {e} (after {texts:?})"),
+            None => panic!("the connection ended without a close frame (after {texts:?})"),
+        }
+    }
+}
+
+/// A 640x480 (or any size) grayscale PNG at 1, 2 or 4 bits a pixel, all black.
+fn packed_gray_png(width: u32, height: u32, depth: png::BitDepth) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    let mut encoder = png::Encoder::new(&mut bytes, width, height);
+    encoder.set_color(png::ColorType::Grayscale);
+    encoder.set_depth(depth);
+    let row_bytes = (width as usize * depth as usize).div_ceil(8);
+    let mut writer = encoder.write_header().expect("header");
+    writer
+        .write_image_data(&vec![0u8; row_bytes * height as usize])
+        .expect("data");
+    writer.finish().expect("finish");
+    bytes
+}
+
+/// What an independent client written from `protocol/` alone found the server doing otherwise:
+/// each rule as the spec now states it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_does_what_the_protocol_says() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 3);
+    let (w, h) = (rec.rig.width, rec.rig.height);
+    let server = TestServer::start(ServerOptions::default()).await;
+    let mut ws = connect(&server.ingest()).await;
+
+    // Anything wrong inside `rig` is the calibration's, an unknown key included.
+    let m = expect_error(
+        &mut ws,
+        hello(&rec, |v| v["rig"]["typo"] = serde_json::json!(1)),
+        ErrorCode::BadCalibration,
+    )
+    .await;
+    assert!(m.contains("typo"), "{m}");
+    ws.send(hello(&rec, |v| v["image"]["encoding"] = "png".into()))
+        .await
+        .expect("sends");
+    assert!(matches!(
+        next_text(&mut ws).await,
+        ServerMessage::Welcome { .. }
+    ));
+
+    // PNGs of fewer than 8 bits a pixel are refused, as `process` refuses them; a refused
+    // frame's index may be sent again.
+    for depth in [png::BitDepth::One, png::BitDepth::Two, png::BitDepth::Four] {
+        let packed = packed_gray_png(w, h, depth);
+        let m = expect_error(
+            &mut ws,
+            frame(0, 0.0, Encoding::Png, &packed, &packed),
+            ErrorCode::BadImage,
+        )
+        .await;
+        assert!(m.contains("8-bit grayscale"), "{depth:?}: {m}");
+    }
+    let left = std::fs::read(rec.left_path(0)).expect("left PNG");
+    let right = std::fs::read(rec.right_path(0)).expect("right PNG");
+    ws.send(frame(0, 0.0, Encoding::Png, &left, &right))
+        .await
+        .expect("sends");
+    assert_eq!(next_binary(&mut ws).await.frame_index, 0);
+    // Refused by the pipeline (a timestamp not after the last one), then sent again corrected.
+    expect_error(
+        &mut ws,
+        frame(1, 0.0, Encoding::Png, &left, &right),
+        ErrorCode::BadTimestamp,
+    )
+    .await;
+    ws.send(frame(1, 0.1, Encoding::Png, &left, &right))
+        .await
+        .expect("sends");
+    assert_eq!(next_binary(&mut ws).await.frame_index, 1);
+    // An accepted index is spent.
+    expect_error(
+        &mut ws,
+        frame(1, 0.2, Encoding::Png, &left, &right),
+        ErrorCode::BadFrame,
+    )
+    .await;
+
+    // Viewers: messages with fields they do not have are refused; `viewers` counts the
+    // subscribers to "*" as well as those to the session by name.
+    let mut all = connect(&server.watch()).await;
+    let mut one = connect(&server.watch()).await;
+    for (viewer, target) in [(&mut all, "*"), (&mut one, "s1")] {
+        assert!(matches!(
+            next_text(viewer).await,
+            ServerMessage::Sessions { .. }
+        ));
+        for extra in [
+            r#"{"type":"list","all":true}"#,
+            r#"{"type":"unsubscribe","session":"s1"}"#,
+        ] {
+            expect_error(viewer, Message::text(extra), ErrorCode::MalformedJson).await;
+        }
+        let subscribe = format!(r#"{{"type":"subscribe","session":"{target}"}}"#);
+        viewer.send(Message::text(subscribe)).await.expect("sends");
+        assert!(matches!(
+            next_text(viewer).await,
+            ServerMessage::Subscribed { .. }
+        ));
+    }
+    let listed = http_get(&format!("http://{}/v1/sessions", server.addr)).await;
+    assert!(listed.contains(r#""viewers":2"#), "{listed}");
+    // A viewer's close is answered with a close.
+    one.send(Message::Close(None)).await.expect("sends");
+    let (_, code) = until_closed(&mut one).await;
+    assert_eq!(code, None, "the answer echoes the viewer's (empty) close");
+
+    // A bye with a field bye does not have is refused, and the session goes on.
+    expect_error(
+        &mut ws,
+        Message::text(r#"{"type":"bye","reason":"done"}"#),
+        ErrorCode::MalformedJson,
+    )
+    .await;
+    ws.send(frame(2, 0.2, Encoding::Png, &left, &right))
+        .await
+        .expect("sends");
+    assert_eq!(next_binary(&mut ws).await.frame_index, 2);
+    // A headset's close is answered with a close, and ends its session like a disconnect.
+    ws.send(Message::Close(Some(
+        tokio_tungstenite::tungstenite::protocol::CloseFrame {
+            code: 1000.into(),
+            reason: "done".into(),
+        },
+    )))
+    .await
+    .expect("sends");
+    let (_, code) = until_closed(&mut ws).await;
+    assert_eq!(code, Some(1000));
+    loop {
+        if let ServerMessage::SessionEnded { session, .. } = next_text(&mut all).await {
+            assert_eq!(session, "s1");
+            break;
+        }
+    }
+    server.stop().await;
+    let (texts, code) = until_closed(&mut all).await;
+    assert!(
+        matches!(texts.last(), Some(ServerMessage::Bye { .. })),
+        "{texts:?}"
+    );
+    assert_eq!(code, Some(1000), "every close from the server is 1000");
+}
+
+/// At shutdown a viewer of every session gets each live session's `session_ended`, then the
+/// emptied `sessions` list, then `bye` and a 1000 close: always, not by luck of timing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn at_shutdown_viewers_always_hear_the_sessions_end_before_their_bye() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 1);
+    let blank = vec![0u8; (rec.rig.width * rec.rig.height) as usize];
+    for round in 0..200 {
+        let server = TestServer::start(ServerOptions::default()).await;
+        let mut headset = connect(&server.ingest()).await;
+        headset.send(hello(&rec, |_| {})).await.expect("sends");
+        assert!(matches!(
+            next_text(&mut headset).await,
+            ServerMessage::Welcome { .. }
+        ));
+        let mut viewer = connect(&server.watch()).await;
+        viewer
+            .send(Message::text(r#"{"type":"subscribe","session":"*"}"#))
+            .await
+            .expect("sends");
+        loop {
+            if let ServerMessage::Subscribed { .. } = next_text(&mut viewer).await {
+                break;
+            }
+        }
+        // A frame in flight as the stop comes, every other round.
+        if round % 2 == 1 {
+            headset
+                .send(frame(0, 0.0, Encoding::Raw8, &blank, &blank))
+                .await
+                .expect("sends");
+        }
+        server.stop().await;
+        let (texts, code) = until_closed(&mut viewer).await;
+        let ended = texts.iter().position(
+            |m| matches!(m, ServerMessage::SessionEnded { session, .. } if session == "s1"),
+        );
+        let emptied = texts.iter().rposition(
+            |m| matches!(m, ServerMessage::Sessions { sessions } if sessions.is_empty()),
+        );
+        let bye = texts.iter().position(
+            |m| matches!(m, ServerMessage::Bye { reason, .. } if reason == "server shutting down"),
+        );
+        assert!(
+            matches!((ended, emptied, bye), (Some(e), Some(s), Some(b)) if e < s && s < b && b + 1 == texts.len()),
+            "round {round}: {texts:?}"
+        );
+        assert_eq!(code, Some(1000), "round {round}");
+        let (texts, code) = until_closed(&mut headset).await;
+        assert!(
+            matches!(texts.last(), Some(ServerMessage::Bye { reason, .. }) if reason == "server shutting down"),
+            "round {round}: {texts:?}"
+        );
+        assert_eq!(code, Some(1000), "round {round}");
+    }
+}

@@ -102,7 +102,11 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         "headset-hello-png-opencv.json",
         json(&hello(Encoding::Png, Convention::OpenCv, None)),
     );
-    g.insert("headset-bye.json", json(&HeadsetMessage::Bye));
+    g.insert(
+        "headset-hello-sparse-webxr.json",
+        json(&hello(Encoding::Sparse, Convention::WebXr, None)),
+    );
+    g.insert("headset-bye.json", json(&HeadsetMessage::Bye {}));
     g.insert(
         "viewer-subscribe.json",
         json(&ViewerMessage::Subscribe {
@@ -117,8 +121,11 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
             convention: Convention::WebXr,
         }),
     );
-    g.insert("viewer-unsubscribe.json", json(&ViewerMessage::Unsubscribe));
-    g.insert("viewer-list.json", json(&ViewerMessage::List));
+    g.insert(
+        "viewer-unsubscribe.json",
+        json(&ViewerMessage::Unsubscribe {}),
+    );
+    g.insert("viewer-list.json", json(&ViewerMessage::List {}));
     g.insert("viewer-ping.json", json(&ViewerMessage::Ping { id: 17 }));
     g.insert(
         "server-welcome.json",
@@ -251,6 +258,22 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
     g.insert(
         "frame-png-4x2.bin",
         frame(Encoding::Png, &left_png, &right_png, None),
+    );
+    // 8x4 images: a dark background with one bright pixel each, kept with its margin.
+    let dark = |bright_at: usize| {
+        (0..32u8)
+            .map(|i| if usize::from(i) == bright_at { 200 } else { 10 })
+            .collect::<Vec<u8>>()
+    };
+    let sparse = |pixels: &[u8]| Encoding::Sparse.encode_image(pixels, 8, 4).expect("sparse");
+    g.insert(
+        "frame-sparse-8x4.bin",
+        frame(
+            Encoding::Sparse,
+            &sparse(&dark(10)),
+            &sparse(&dark(13)),
+            None,
+        ),
     );
     let batch = |kind, world, vectors| Batch {
         kind,

@@ -156,6 +156,45 @@ async fn rust_client_vectors_match_offline_processing_and_the_live_recording() {
     assert_same_vectors(&report.refined, &again);
 }
 
+/// A headset sending `sparse` images: the session decodes them, records what it decoded, and
+/// `mrptv process` on that recording gives the vectors the headset got.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sparse_frames_are_decoded_recorded_and_measured() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::HololensRaw, 40);
+    let record_dir = tmp.path().join("live");
+    let server = TestServer::start(ServerOptions {
+        record_dir: Some(record_dir.clone()),
+        ..Default::default()
+    })
+    .await;
+    let options = ReplayOptions {
+        encoding: Encoding::Sparse,
+        ..replay_options(server.ingest(), &config)
+    };
+    let report = replay(&rec, &options).await;
+    server.stop().await;
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert_eq!(report.counters.map(|c| c.frames_processed), Some(40));
+    assert!(report.causal_vectors > 200, "{}", report.causal_vectors);
+    let recorded = Recording::open(&the_only_subdir(&record_dir)).expect("recorded session");
+    assert_eq!(recorded.frames.len(), 40);
+    // What was recorded is what the headset's encoder sent: every pixel it kept, exactly.
+    let first = recorded.frames[0];
+    let (left, _) = recorded.load(&first).expect("recorded images");
+    let (original, _) = rec.load(&rec.frames[0]).expect("original images");
+    let (w, h) = (rec.rig.width, rec.rig.height);
+    let sent = Encoding::Sparse
+        .encode_image(&original, w, h)
+        .expect("encodes");
+    assert_eq!(
+        Encoding::Sparse.decode_image(&sent, w, h).expect("decodes"),
+        left
+    );
+    let again = offline_tracks(&recorded, &config, &tmp.path().join("again.csv"));
+    assert_same_vectors(&report.refined, &again);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_client_written_from_the_spec_gets_the_offline_vectors() {
     let tmp = tempfile::tempdir().expect("tmp");

@@ -4,6 +4,7 @@ use anyhow::{bail, Result};
 
 use mrptv::eval::EvalOptions;
 use mrptv::offline;
+use mrptv::protocol::Encoding;
 use mrptv::ptv::PipelineConfig;
 use mrptv::synth::{Scenario, ScenarioSpec};
 
@@ -27,6 +28,10 @@ pub struct Args {
     /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
     #[arg(long, value_name = "NEAR..FAR")]
     depth_range: Option<DepthRange>,
+    /// Send the images through a frame encoding first (raw8, png, sparse), as a headset would,
+    /// and report its bandwidth and coding time next to the accuracy it gives.
+    #[arg(long, default_value = "raw8")]
+    encoding: Encoding,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -37,6 +42,7 @@ pub fn run(args: Args) -> Result<()> {
         seed,
         method,
         depth_range,
+        encoding,
     } = args;
     let spec = ScenarioSpec::new(scenario);
     let frames = frames.unwrap_or(spec.default_frames);
@@ -60,9 +66,17 @@ pub fn run(args: Args) -> Result<()> {
         window_frames: config.velocity.half_window_frames as u64,
         ..Default::default()
     };
-    let run = offline::run_in_memory(spec, config.clone(), frames, particles, seed, &eval, |n| {
-        bar.set_position(n as u64)
-    })?;
+    let pairs_per_s = 1.0 / spec.frame_interval_s;
+    let run = offline::run_in_memory_over(
+        encoding,
+        spec,
+        config.clone(),
+        frames,
+        particles,
+        seed,
+        &eval,
+        |n| bar.set_position(n as u64),
+    )?;
     bar.finish_and_clear();
     println!("scene: {}", run.scene.crowding());
     super::print_health(&run.totals.health(&config));
@@ -75,6 +89,14 @@ pub fn run(args: Args) -> Result<()> {
         },
         run.totals.counts.matches as f64 / run.totals.frames.max(1) as f64,
         run.totals.counts.vectors
+    );
+    let wire = &run.wire;
+    println!(
+        "wire: {encoding:?}, {:.0} bytes per stereo pair, {:.1} Mbit/s at {pairs_per_s:.0} Hz; encoder {:.2} ms, decoder {:.2} ms per image\n",
+        wire.bytes_per_pair(),
+        wire.mbit_per_s(pairs_per_s),
+        wire.encode_ms_per_image(),
+        wire.decode_ms_per_image()
     );
     print!("{}", run.report);
     Ok(())

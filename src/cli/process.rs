@@ -94,13 +94,14 @@ pub fn run(args: Args) -> Result<()> {
         report_rerun(logger, &rerun);
     }
     eprintln!(
-        "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough, {} as straying from their neighbours) -> {}; pipeline {:.1} frames/s",
+        "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough, {} as straying from their neighbours, {} as no measurement: outside the volume or impossibly fast) -> {}; pipeline {:.1} frames/s",
         totals.frames,
         (totals.counts.detections_left + totals.counts.detections_right) as f64 / (2 * totals.frames.max(1)) as f64,
         totals.counts.matches as f64 / totals.frames.max(1) as f64,
         totals.counts.vectors,
         totals.counts.rejected,
         totals.counts.outliers,
+        totals.counts.implausible,
         out.display(),
         totals.frames as f64 / totals.pipeline_s.max(1e-9)
     );

@@ -24,7 +24,8 @@ pub struct Args {
     /// With --rate max: frames sent but not yet answered, at most.
     #[arg(long, default_value_t = 2)]
     in_flight: usize,
-    /// Image encoding on the wire: raw8 or png (the recording's files, sent as they are).
+    /// Image encoding on the wire: raw8, png (the recording's files, sent as they are) or sparse
+    /// (particles exact, background coarse: what a headset's Wi-Fi carries).
     #[arg(long, default_value = "raw8")]
     encoding: Encoding,
     /// Coordinate convention of the vectors received: opencv, unity or webxr.

@@ -27,6 +27,10 @@ pub struct Args {
     /// Scenario the demo headset streams.
     #[arg(long, default_value = "flume")]
     demo_scenario: Scenario,
+    /// How the demo headset sends its images: raw8, png, or sparse (what a headset's Wi-Fi
+    /// carries: protocol/README.md, Image encodings).
+    #[arg(long, default_value = "raw8")]
+    demo_encoding: Encoding,
     /// Record every session's incoming frames as a recording directory under DIR.
     #[arg(long, value_name = "DIR")]
     record: Option<PathBuf>,
@@ -104,7 +108,9 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     let tls = tls.map(|source| setup_tls(&source)).transpose()?;
-    let demo = args.demo.then_some(args.demo_scenario);
+    let demo = args
+        .demo
+        .then_some((args.demo_scenario, args.demo_encoding));
     runtime()?.block_on(serve(args.bind, options, tls, demo, secrets))?;
     drop(proxy);
     Ok(())
@@ -114,7 +120,7 @@ async fn serve(
     bind: SocketAddr,
     mut options: ServerOptions,
     tls: Option<ServerTls>,
-    demo: Option<Scenario>,
+    demo: Option<(Scenario, Encoding)>,
     secrets: Secrets,
 ) -> Result<()> {
     let listener = tokio::net::TcpListener::bind(bind)
@@ -137,10 +143,10 @@ async fn serve(
         eprintln!("warning: {warning}");
     }
     print_banner(addr, scheme, &options, secrets.watch);
-    let demo_task = demo.map(|scenario| {
+    let demo_task = demo.map(|(scenario, encoding)| {
         let spec = ScenarioSpec::new(scenario);
         println!(
-            "  demo: a synthetic headset streams '{scenario}' at {:.0} Hz, looping ({})",
+            "  demo: a synthetic headset streams '{scenario}' at {:.0} Hz as {encoding:?} images, looping ({})",
             1.0 / spec.frame_interval_s,
             scenario.description()
         );
@@ -155,7 +161,7 @@ async fn serve(
         };
         let stop = stop_rx.clone();
         tokio::spawn(async move {
-            let source = SyntheticSource::new(spec, 1, None, Encoding::Raw8);
+            let source = SyntheticSource::new(spec, 1, None, encoding);
             match client::replay(source, &options, stopped(stop), |_| {}).await {
                 // Logged under the binary's name, as before the CLI had modules.
                 Ok(r) => {

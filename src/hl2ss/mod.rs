@@ -48,6 +48,19 @@ pub const LEVEL_DEFAULT: u8 = 0xFF;
 pub const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
 /// `CODECAPI_AVEncMPVGOPSize`, set to 1 by hl2ss's client for raw streams.
 pub const OPTION_GOP_SIZE: u64 = 10;
+/// `HL2SSAPI_VLCHostTicksOffsetExposure`: the server stamps a frame `host_ticks + factor *
+/// exposure / 100 + constant` (the factor a double's bits) and locates its pose at that time.
+pub const OPTION_TICKS_OFFSET_EXPOSURE: u64 = 0xFFFF_FFFF_FFFF_FFFF;
+/// `HL2SSAPI_VLCHostTicksOffsetConstant`, 100 ns ticks as an i64's bits.
+pub const OPTION_TICKS_OFFSET_CONSTANT: u64 = 0xFFFF_FFFF_FFFF_FFFE;
+/// What hl2ss's client sends since v1.0.33: host ticks run 12.5 ms after mid-exposure, so
+/// these stamp each frame (and locate its pose) at mid-exposure. Without them a current server
+/// stamps raw host ticks: poses 12.5 ms late.
+pub const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
+pub const TICKS_OFFSET_CONSTANT: i64 = -125_000;
+/// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and today's
+/// timestamp options both date from it.
+pub const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
 /// QPC ticks (100 ns) per second.
 pub const TICKS_PER_SECOND: f64 = 1e7;
 
@@ -92,7 +105,14 @@ impl StreamConfig {
             profile: PROFILE_RAW,
             level: LEVEL_DEFAULT,
             bitrate: RAW_BITRATE,
-            options: vec![(OPTION_GOP_SIZE, 1)],
+            options: vec![
+                (OPTION_GOP_SIZE, 1),
+                (
+                    OPTION_TICKS_OFFSET_EXPOSURE,
+                    TICKS_OFFSET_EXPOSURE_FACTOR.to_bits(),
+                ),
+                (OPTION_TICKS_OFFSET_CONSTANT, TICKS_OFFSET_CONSTANT as u64),
+            ],
         }
     }
 
@@ -206,6 +226,13 @@ pub fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
 impl VlcFrame {
     /// From a raw payload (pixels and trailer) and, in mode 1, the 64 pose bytes.
     pub fn decode(timestamp: u64, payload: &[u8], pose: Option<&[u8]>) -> Result<Self, Hl2ssError> {
+        if payload.len() == VLC_PIXELS {
+            return Err(Hl2ssError::Frame(format!(
+                "payload of {VLC_PIXELS} bytes: a bare image without the 24-byte trailer, as hl2ss \
+                 before v{OLDEST_SUPPORTED_VERSION} sends; mrptv hl2ss needs hl2ss \
+                 v{OLDEST_SUPPORTED_VERSION} or later on the HoloLens: update its hl2ss app"
+            )));
+        }
         if payload.len() != VLC_PIXELS + VLC_METADATA_BYTES {
             return Err(Hl2ssError::Frame(format!(
                 "payload of {} bytes; a raw 640x480 frame and its trailer are {} (is the stream raw?)",
@@ -454,7 +481,10 @@ pub fn fit_lens(
             let repeated = u > 0
                 && uv2x[v * width as usize + u - 1] == uv2x[v * width as usize + u]
                 && uv2y[v * width as usize + u - 1] == uv2y[v * width as usize + u];
-            if x.is_finite() && y.is_finite() && !repeated {
+            // hl2ss leaves a pixel whose unprojection failed at (0, 0); only the principal
+            // point's own ray is there, so dropping that one pixel costs nothing.
+            let failed = x == 0.0 && y == 0.0;
+            if x.is_finite() && y.is_finite() && !repeated && !failed {
                 samples.push((x, y, u as f64, v as f64));
             }
         }
@@ -737,11 +767,23 @@ mod tests {
     fn configurations_round_trip_and_match_hl2ss_bytes() {
         let raw = StreamConfig::raw_with_poses();
         let b = raw.encode();
-        // 01 01 FF FF <u32 110592000> 01 <u64 10><u64 1>: hl2ss's default raw request.
-        assert_eq!(b.len(), 25);
-        assert_eq!(&b[..4], &[1, 1, 0xFF, 0xFF]);
-        assert_eq!(u32::from_le_bytes([b[4], b[5], b[6], b[7]]), 110_592_000);
-        assert_eq!(b[8], 1);
+        // hl2ss_lnm.rx_rm_vlc(mode=MODE_1, profile=RAW), v1.0.33 to v1.0.37: mode 1, divisor 1,
+        // raw, default level, bitrate 640*480*30*12, three options: GOP size 1, then the
+        // exposure factor 0.0 (a double's bits) and the constant -125000 (an int64's bits),
+        // in that order (Python's dict keeps insertion order).
+        let mut hl2ss = vec![1u8, 1, 0xFF, 0xFF];
+        hl2ss.extend_from_slice(&110_592_000u32.to_le_bytes());
+        hl2ss.push(3);
+        for (key, value) in [
+            (10u64, 1u64),
+            (0xFFFF_FFFF_FFFF_FFFF, 0),
+            (0xFFFF_FFFF_FFFF_FFFE, 0xFFFF_FFFF_FFFE_17B8),
+        ] {
+            hl2ss.extend_from_slice(&key.to_le_bytes());
+            hl2ss.extend_from_slice(&value.to_le_bytes());
+        }
+        assert_eq!(b.len(), 57);
+        assert_eq!(b, hl2ss);
         assert_eq!(StreamConfig::decode(&b), Ok(raw));
         assert_eq!(StreamConfig::calibration().encode(), vec![2]);
         assert!(StreamConfig::decode(&b[..20]).is_err());
@@ -785,6 +827,9 @@ mod tests {
         let lost = VlcFrame::decode(t, payload, Some(&[0u8; 64])).expect("frame");
         assert_eq!(lost.pose, None);
         assert!(VlcFrame::decode(t, &payload[1..], None).is_err());
+        // hl2ss before v1.0.33 sends the bare image: told which version is needed.
+        let e = VlcFrame::decode(t, &payload[..VLC_PIXELS], None).expect_err("refused");
+        assert!(e.to_string().contains("v1.0.33 or later"), "{e}");
     }
 
     fn table(camera: &CameraModel) -> (Vec<f32>, Vec<f32>) {
@@ -810,6 +855,22 @@ mod tests {
                 assert!((a - c).abs() < 1e-4 && (b - d).abs() < 1e-4, "({u},{v})");
             }
         }
+        // Pixels whose unprojection failed, left at (0, 0) by hl2ss (as at a real lens's
+        // corners), are not fitted.
+        let truth = rig.left;
+        let (mut x, mut y) = table(&truth);
+        for v in 0..VLC_HEIGHT as usize {
+            for u in 0..VLC_WIDTH as usize {
+                let corner = u.min(VLC_WIDTH as usize - 1 - u) + v.min(VLC_HEIGHT as usize - 1 - v);
+                if corner < 40 || (u * 7 + v * 13) % 97 == 0 {
+                    x[v * VLC_WIDTH as usize + u] = 0.0;
+                    y[v * VLC_WIDTH as usize + u] = 0.0;
+                }
+            }
+        }
+        let fit = fit_lens(&x, &y, VLC_WIDTH, VLC_HEIGHT, 8).expect("fits");
+        assert!(fit.rms_px < 0.01 && fit.max_px < 0.05, "{fit:?}");
+        assert!((fit.camera.cx - truth.cx).abs() < 0.05, "{fit:?}");
         // An upside-down table is refused with a reason.
         let (x, y) = table(&rig.left);
         let flipped: Vec<f32> = y.iter().map(|v| -v).collect();

@@ -88,6 +88,11 @@ impl Default for VelocityConfig {
     }
 }
 
+/// The smallest disparity at which a particle's depth counts as measured, pixels: half a
+/// pixel of error then moves it by a quarter. Bounds the measurement volume where no depth
+/// range is set or learnt (a rig's views overlap out to infinity).
+pub const MIN_MEASURED_DISPARITY_PX: f64 = 2.0;
+
 /// Every parameter of the pipeline; the TOML config file has one table per stage.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -308,6 +313,9 @@ pub struct FrameStats {
     pub rejected: usize,
     /// Centred vectors dropped for straying from their neighbours (`velocity.outlier_neighbours`).
     pub outliers: usize,
+    /// Vectors (centred and causal) dropped as no measurement: outside the measurement volume or
+    /// faster than a tracked particle can move (`Pipeline::is_plausible`).
+    pub implausible: usize,
     /// Features that continue a track from an earlier frame, per camera.
     pub linked_left: usize,
     pub linked_right: usize,
@@ -342,6 +350,7 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.causal_vectors += s.causal_vectors;
         self.rejected += s.rejected;
         self.outliers += s.outliers;
+        self.implausible += s.implausible;
         self.linked_left += s.linked_left;
         self.linked_right += s.linked_right;
         self.stereo_candidates += s.stereo_candidates;
@@ -793,12 +802,17 @@ impl Pipeline {
         let mut centred = Vec::new();
         for track in self.tracks.values().chain(&self.retired) {
             match self.centred_vector(track, seq) {
-                Some(Ok(found)) => centred.push(found),
+                Some(Ok(found)) if self.is_plausible(&found.0, track) => centred.push(found),
+                Some(Ok(_)) => out.stats.implausible += 1,
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
             }
             if let Some(v) = self.causal_vector(track, seq) {
-                out.causal_vectors.push(v);
+                if self.is_plausible(&v, track) {
+                    out.causal_vectors.push(v);
+                } else {
+                    out.stats.implausible += 1;
+                }
             }
         }
         // Live causal vectors are judged too: the holograms should not show what the
@@ -895,6 +909,41 @@ impl Pipeline {
     /// noise about six-fold, and young tracks (few samples) were the worst vectors (README,
     /// "Live service"). Rough tracks get no causal vector (not counted as rejected: their
     /// centred check comes later).
+    /// Whether a vector can be a measurement at all, whatever the config: a wearer must never
+    /// see, and a recording never keep, an arrow tens of metres away at hundreds of m/s.
+    /// - Inside the measurement volume: its particle's depth is resolved, seen at a disparity of
+    ///   at least `MIN_MEASURED_DISPARITY_PX` (beyond, half a pixel of matching error moves the
+    ///   depth by more than a quarter of itself: a match there says little more than "far").
+    /// - No faster than a tracked particle can move: over one frame interval its step must
+    ///   move the particle across the image, or change its disparity, by at most half the
+    ///   image's longer side (a particle must stay in view for the frames its velocity is
+    ///   fitted over, and each camera can contribute that much to the disparity).
+    fn is_plausible(&self, v: &VelocityVector, track: &Track3d) -> bool {
+        let Some(at) = track
+            .samples
+            .iter()
+            .find(|s| s.frame_index == v.frame_index)
+        else {
+            return true;
+        };
+        let focal_px = self.rectification.focal_px;
+        let focal_baseline = focal_px * self.rectification.baseline_m;
+        let depth = at.depth_m;
+        if !(depth > 0.0 && depth * MIN_MEASURED_DISPARITY_PX <= focal_baseline) {
+            return false;
+        }
+        let (first, last) = match (track.samples.front(), track.samples.back()) {
+            (Some(first), Some(last)) if last.seq > first.seq => (first, last),
+            _ => return true,
+        };
+        let frame_interval_s = (last.t_s - first.t_s) / (last.seq - first.seq) as f64;
+        let reach_px = f64::from(self.rig.width.max(self.rig.height)) / 2.0;
+        let step = v.velocity_in_world * frame_interval_s;
+        let (along, across_sq) = at.along_and_across_sq(&step);
+        across_sq.sqrt() * focal_px / depth <= reach_px
+            && along.abs() * focal_baseline / (depth * depth) <= 2.0 * reach_px
+    }
+
     fn causal_vector(&self, track: &Track3d, seq: u64) -> Option<VelocityVector> {
         let newest = track.samples.back().filter(|s| s.seq == seq)?;
         let m = self.config.velocity.half_window_frames;
@@ -1473,6 +1522,58 @@ mod tests {
                 assert!(!out.causal_vectors.is_empty(), "frame {}", f.index);
             }
         }
+    }
+
+    #[test]
+    fn particles_too_far_for_their_depth_to_be_measured_give_no_vectors() {
+        // The flume's particles, moved out to where their disparity is 1-1.5 px and scaled to
+        // keep their size in the image: found, matched and tracked, but never published.
+        let near = ScenarioSpec::new(Scenario::Flume);
+        let rect = Rectification::new(&near.rig).expect("rectifies");
+        let focal_baseline = rect.focal_px * rect.baseline_m;
+        let run = |spec: &ScenarioSpec| {
+            let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
+            let mut synth = Synthesizer::new(spec.clone(), 30, 5);
+            let mut pipeline =
+                Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
+            let mut totals = FrameStats::default();
+            for _ in 0..30 {
+                let f = synth.next_frame();
+                let out = pipeline
+                    .push(&frame(f.index, f.t_s, w, h, &f.left, &f.right))
+                    .expect("valid");
+                let vectors = out.vectors.len() + out.causal_vectors.len();
+                assert_eq!(out.stats.vectors + out.stats.causal_vectors, vectors);
+                totals += &out.stats;
+            }
+            totals
+        };
+        let mut far = near.clone();
+        let scale = focal_baseline / 1.25 / (0.5 * (near.domain_min.z + near.domain_max.z));
+        far.domain_min = Point3::from(near.domain_min.coords * scale);
+        far.domain_max = Point3::from(near.domain_max.coords * scale);
+        far.diameter_m *= scale;
+        far.diameter_sd_m *= scale;
+        far.illumination *= scale * scale;
+        far.flow = match &near.flow {
+            crate::synth::Flow::Uniform(v) => crate::synth::Flow::Uniform(v * scale),
+            other => panic!("the flume's flow is uniform: {other:?}"),
+        };
+        let (near_stats, far_stats) = (run(&near), run(&far));
+        assert!(
+            near_stats.vectors > 100 && near_stats.implausible == 0,
+            "{near_stats:?}"
+        );
+        assert!(
+            far_stats.matches > 100,
+            "the far particles are seen: {far_stats:?}"
+        );
+        assert_eq!(
+            far_stats.vectors + far_stats.causal_vectors,
+            0,
+            "{far_stats:?}"
+        );
+        assert!(far_stats.implausible > 100, "{far_stats:?}");
     }
 
     #[test]

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 use std::sync::mpsc as std_mpsc;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
@@ -21,7 +21,7 @@ use crate::protocol::{
     Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
 };
 use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
-use crate::recording::{decode_gray_png, FrameEntry, RecordingWriter};
+use crate::recording::{FrameEntry, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger, RerunSink};
 
 /// A frame accepted from the socket, waiting for the pipeline.
@@ -34,14 +34,43 @@ struct QueuedFrame {
     left: Bytes,
     right: Bytes,
     received: Instant,
+    /// The session's last index before this frame's, given back if the pipeline refuses it.
+    index_before: Option<u64>,
+}
+
+/// The frame index a new frame's must exceed: that of the last frame accepted and not refused
+/// (indices name recorded files). A refused frame leaves no trace, so it may be sent again,
+/// corrected, with the same index, unless a later frame was accepted since.
+#[derive(Debug, Default)]
+struct FrameIndices(Mutex<Option<u64>>);
+
+impl FrameIndices {
+    fn last(&self) -> Option<u64> {
+        *self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Takes `index`; what was last before it.
+    fn spend(&self, index: u64) -> Option<u64> {
+        self.0
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .replace(index)
+    }
+
+    /// A frame the pipeline refused gives its index back, unless a later one was taken since.
+    fn give_back(&self, index: u64, before: Option<u64>) {
+        let mut last = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        if *last == Some(index) {
+            *last = before;
+        }
+    }
 }
 
 /// The connection's live session.
 struct Session {
     shared: Arc<SessionShared>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
-    /// The last frame index queued: indices must increase (they name recorded files).
-    last_index: std::cell::Cell<Option<u64>>,
+    frame_indices: Arc<FrameIndices>,
     /// Resolves when the pipeline thread has drained the queue and closed the recording.
     worker_done: oneshot::Receiver<()>,
     /// Its place among `--max-sessions`, given back when the session ends.
@@ -104,10 +133,13 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                 Ok(_) => break,
                 Err(_) => {
                     tracing::info!("headset not reading for {send_timeout:?}: disconnecting it");
-                    break;
+                    return;
                 }
             }
         }
+        // Flushes a close frame: ours after a bye, or the one the WebSocket queued in answer
+        // to the headset's own (RFC 6455 5.5.1), so the headset sees a clean close.
+        let _ = tokio::time::timeout(send_timeout, sink.close()).await;
     });
     let mut shutdown = hub.shutdown.clone();
     let mut status = tokio::time::interval(hub.options.status_interval);
@@ -144,6 +176,8 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                         Some(Ok(Message::Binary(bytes))) => conn.on_binary(bytes),
                         Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
                         Some(Ok(Message::Close(_))) | None => {
+                            // Answered at once: nothing else can reach a headset that closed.
+                            let _ = conn.out.try_send(Message::Close(None));
                             conn.finish(None).await;
                             break;
                         }
@@ -220,7 +254,7 @@ impl Connection {
     async fn on_text(&mut self, text: &str) -> bool {
         match parse_text::<HeadsetMessage>(text, HEADSET_TYPES) {
             Err(e) => self.reject(e),
-            Ok(HeadsetMessage::Bye) => {
+            Ok(HeadsetMessage::Bye {}) => {
                 self.finish(Some("client said bye")).await;
                 return true;
             }
@@ -343,7 +377,9 @@ impl Connection {
         };
         let rerun = self.start_rerun(&id, started_unix_ms, &rig);
         let guard = self.hub.worker();
+        let frame_indices = Arc::new(FrameIndices::default());
         let worker = Worker {
+            frame_indices: Arc::clone(&frame_indices),
             shared: Arc::clone(&shared),
             pipeline,
             out: self.out.clone(),
@@ -374,7 +410,7 @@ impl Connection {
         self.session = Some(Session {
             shared,
             queue,
-            last_index: Default::default(),
+            frame_indices,
             worker_done,
             _slot: slot,
         });
@@ -445,17 +481,6 @@ impl Connection {
             Ok(f) => f,
             Err(e) => return self.reject_frame(e),
         };
-        if !self.rate.admit(Instant::now()) {
-            let mut e = ProtocolError::new(
-                ErrorCode::RateLimited,
-                format!(
-                    "frame {}: more than {} frames/s (--max-frame-rate); frame refused",
-                    frame.frame_index, self.hub.options.max_frame_rate_hz
-                ),
-            );
-            e.frame_index = Some(frame.frame_index);
-            return self.reject_frame(e);
-        }
         let shared = &session.shared;
         let index = frame.frame_index;
         let at_frame = |code, message: String| {
@@ -463,10 +488,17 @@ impl Connection {
             e.frame_index = Some(index);
             e
         };
-        if let Some(last) = session.last_index.get().filter(|&last| index <= last) {
+        if let Some(last) = session.frame_indices.last().filter(|&last| index <= last) {
             let message =
                 format!("frame {index}: frame_index must increase (the previous frame was {last})");
             return self.reject_frame(at_frame(ErrorCode::BadFrame, message));
+        }
+        if !self.rate.admit(Instant::now()) {
+            let message = format!(
+                "frame {index}: more than {} frames/s (--max-frame-rate); frame refused",
+                self.hub.options.max_frame_rate_hz
+            );
+            return self.reject_frame(at_frame(ErrorCode::RateLimited, message));
         }
         if frame.encoding != shared.description.encoding {
             let message = format!(
@@ -507,9 +539,9 @@ impl Connection {
             left: bytes.slice_ref(frame.left),
             right: bytes.slice_ref(frame.right),
             received: Instant::now(),
+            index_before: session.frame_indices.spend(index),
         };
         shared.counters().frames_received += 1;
-        session.last_index.set(Some(index));
         match session.queue.push(queued) {
             Pushed::Queued => {}
             Pushed::DroppedOldest(old) => {
@@ -604,6 +636,7 @@ struct Worker {
     events: tokio::sync::broadcast::Sender<HubEvent>,
     recorder: Option<Recorder>,
     queue: Arc<DropOldestQueue<QueuedFrame>>,
+    frame_indices: Arc<FrameIndices>,
     /// Over the session: its health figures and mean processing time.
     totals: RunTotals,
     rerun: Option<RerunLogger>,
@@ -650,7 +683,9 @@ impl Worker {
         }
     }
 
-    fn reject(&self, error: ProtocolError) {
+    fn reject(&self, frame: &QueuedFrame, error: ProtocolError) {
+        self.frame_indices
+            .give_back(frame.index, frame.index_before);
         self.shared.counters().frames_rejected += 1;
         tracing::debug!(session = %self.shared.id(), "frame refused: {}", error.message);
         self.send_error(error);
@@ -672,19 +707,22 @@ impl Worker {
         let decode = |camera: &str, bytes: &Bytes| -> Result<Bytes, ProtocolError> {
             match frame.encoding {
                 Encoding::Raw8 => Ok(bytes.clone()),
-                Encoding::Png => decode_gray_png(bytes, w, h).map(Bytes::from).map_err(|m| {
-                    at_frame(
-                        ErrorCode::BadImage,
-                        format!("frame {}: {camera} image: {m}", frame.index),
-                    )
-                }),
+                other => other
+                    .decode_image(bytes, w, h)
+                    .map(Bytes::from)
+                    .map_err(|m| {
+                        at_frame(
+                            ErrorCode::BadImage,
+                            format!("frame {}: {camera} image: {m}", frame.index),
+                        )
+                    }),
             }
         };
         let images =
             decode("left", &frame.left).and_then(|l| Ok((l, decode("right", &frame.right)?)));
         let (left, right) = match images {
             Ok(images) => images,
-            Err(e) => return self.reject(e),
+            Err(e) => return self.reject(&frame, e),
         };
         let stereo = StereoFrame {
             index: frame.index,
@@ -701,7 +739,8 @@ impl Worker {
                     PipelineError::ImageSize { .. } => ErrorCode::BadImage,
                     _ => ErrorCode::Internal,
                 };
-                return self.reject(at_frame(code, e.to_string()));
+                let error = at_frame(code, e.to_string());
+                return self.reject(&frame, error);
             }
         };
         let processing_s = started.elapsed().as_secs_f64();

@@ -291,8 +291,12 @@ impl Hub {
         let _ = self.events.send(HubEvent::SessionsChanged);
     }
 
+    /// The session's `session_ended` and `sessions` events are published before the lock is
+    /// released: whoever sees the session gone finds both in the ring (a viewer closing at
+    /// shutdown relies on it to send them before its bye).
     pub fn remove_session(&self, number: u32) {
-        if let Some(s) = self.sessions().remove(&number) {
+        let mut sessions = self.sessions();
+        if let Some(s) = sessions.remove(&number) {
             let counters = *s.counters();
             let _ = self.events.send(HubEvent::Ended {
                 session_number: number,
@@ -301,6 +305,7 @@ impl Hub {
             });
             let _ = self.events.send(HubEvent::SessionsChanged);
         }
+        drop(sessions);
     }
 
     pub fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use futures_util::{SinkExt, StreamExt};
-use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::broadcast::error::{RecvError, TryRecvError};
 
 use super::{Hub, HubEvent};
 use crate::protocol::{
@@ -55,6 +55,41 @@ impl Viewer {
                 if let Some(session) = self.hub.sessions().get(&number) {
                     apply(&session.viewers);
                 }
+            }
+        }
+    }
+
+    /// What this viewer is sent for a hub event, if anything.
+    fn message_for(&mut self, event: HubEvent, sessions: impl Fn() -> Message) -> Option<Message> {
+        match event {
+            HubEvent::Batch(published) => self
+                .wants(published.batch.session_number)
+                .map(|convention| Message::Binary(published.encoded(convention))),
+            HubEvent::SessionsChanged => Some(sessions()),
+            HubEvent::Status {
+                session_number,
+                id,
+                counters,
+            } => self.wants(session_number).map(|_| {
+                text(&ServerMessage::Status {
+                    session: id,
+                    counters,
+                })
+            }),
+            HubEvent::Ended {
+                session_number,
+                id,
+                counters,
+            } => {
+                if self.subscription.as_ref().map(|s| s.target) == Some(Target::One(session_number))
+                {
+                    // Its session is gone: the count it held went with it.
+                    self.subscription = None;
+                }
+                Some(text(&ServerMessage::SessionEnded {
+                    session: id,
+                    counters,
+                }))
             }
         }
     }
@@ -127,26 +162,32 @@ where
             }
         }
         if closing_by.is_some() && hub.session_count() == 0 {
+            // A session leaves the hub only after its `session_ended` and `sessions` events are
+            // in the ring: what is still waiting there goes out before the bye.
+            let mut drained = Vec::new();
+            loop {
+                match events.try_recv() {
+                    Ok(event) => drained.extend(viewer.message_for(event, sessions)),
+                    Err(TryRecvError::Lagged(_)) => {}
+                    Err(_) => break,
+                }
+            }
+            let flushed = tokio::time::timeout(send_timeout, async {
+                for message in drained {
+                    sink.send(message).await?;
+                }
+                Ok::<_, S::Error>(())
+            })
+            .await;
+            if !matches!(flushed, Ok(Ok(()))) {
+                return;
+            }
             break;
         }
         let deadline = closing_by.unwrap_or_else(|| tokio::time::Instant::now() + send_timeout);
         reply = tokio::select! {
             event = events.recv() => match event {
-                Ok(HubEvent::Batch(published)) => viewer
-                    .wants(published.batch.session_number)
-                    .map(|convention| Message::Binary(published.encoded(convention))),
-                Ok(HubEvent::SessionsChanged) => Some(sessions()),
-                Ok(HubEvent::Status { session_number, id, counters }) => viewer
-                    .wants(session_number)
-                    .map(|_| text(&ServerMessage::Status { session: id, counters })),
-                Ok(HubEvent::Ended { session_number, id, counters }) => {
-                    let message = text(&ServerMessage::SessionEnded { session: id, counters });
-                    if viewer.subscription.as_ref().map(|s| s.target) == Some(Target::One(session_number)) {
-                        // Its session is gone: the count it held went with it.
-                        viewer.subscription = None;
-                    }
-                    Some(message)
-                }
+                Ok(event) => viewer.message_for(event, sessions),
                 Err(RecvError::Lagged(n)) => {
                     lagged += n;
                     tracing::debug!(lagged, "viewer too slow: skipped {n} events");
@@ -163,7 +204,13 @@ where
                         "viewers send only text messages (subscribe, unsubscribe, list)",
                     ))),
                     Some(Ok(Message::Ping(_) | Message::Pong(_))) => None,
-                    Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return,
+                    Some(Ok(Message::Close(_))) => {
+                        // Flushes the close frame the WebSocket queued in answer (RFC 6455
+                        // 5.5.1): the viewer sees a clean close, not 1006.
+                        let _ = tokio::time::timeout(send_timeout, sink.close()).await;
+                        return;
+                    }
+                    Some(Err(_)) | None => return,
                 }
             },
             // Browsers answer WebSocket pings by themselves: only a vanished viewer goes silent.
@@ -183,8 +230,9 @@ where
             _ = tokio::time::sleep_until(deadline), if closing_by.is_some() => break,
         };
     }
+    // 1000 whatever the reason, as for headsets: the bye before it says why.
     let close = Message::Close(Some(CloseFrame {
-        code: 1001,
+        code: 1000,
         reason: reason.clone().into(),
     }));
     let bye = text(&ServerMessage::Bye {
@@ -192,8 +240,8 @@ where
         counters: None,
     });
     let _ = tokio::time::timeout(send_timeout, async {
-        if sink.send(bye).await.is_ok() {
-            let _ = sink.send(close).await;
+        if sink.send(bye).await.is_ok() && sink.send(close).await.is_ok() {
+            let _ = sink.close().await;
         }
     })
     .await;
@@ -221,11 +269,11 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
         Err(e) => return e.to_message(),
     };
     match request {
-        ViewerMessage::List => ServerMessage::Sessions {
+        ViewerMessage::List {} => ServerMessage::Sessions {
             sessions: hub.session_list(),
         },
         ViewerMessage::Ping { id } => ServerMessage::Pong { id },
-        ViewerMessage::Unsubscribe => {
+        ViewerMessage::Unsubscribe {} => {
             viewer.set(None);
             ServerMessage::Unsubscribed
         }

@@ -85,7 +85,7 @@ def decode_frame(data, what="frame"):
     if len(data) < FRAME_HDR.size:
         raise Failure(f"{what}: {len(data)} bytes, shorter than the 32-byte header")
     magic, version, enc, flags, index, t_s, llen, rlen = FRAME_HDR.unpack_from(data)
-    if magic != b"MRPF" or version != 1 or enc not in (0, 1) or flags & ~1:
+    if magic != b"MRPF" or version != 1 or enc not in (0, 1, 2) or flags & ~1:
         raise Failure(f"{what}: bad header magic={magic!r} version={version} encoding={enc} flags={flags}")
     off = FRAME_HDR.size + (POSE.size if flags & 1 else 0)
     if len(data) != off + llen + rlen:
@@ -96,7 +96,12 @@ def decode_frame(data, what="frame"):
     left, right = data[off:off + llen], data[off + llen:]
     if enc == 1 and not (left.startswith(b"\x89PNG\r\n\x1a\n") and right.startswith(b"\x89PNG\r\n\x1a\n")):
         raise Failure(f"{what}: encoding png but an image is not a PNG file")
-    return dict(index=index, t_s=t_s, encoding=("raw8", "png")[enc], pose=pose, left_len=llen, right_len=rlen)
+    if enc == 2:
+        for image in (left, right):
+            # sparse: u8 block_px >= 1, three zero bytes, u32 run count (the rest needs the size).
+            if len(image) < 8 or image[0] == 0 or image[1:4] != b"\0\0\0":
+                raise Failure(f"{what}: encoding sparse but an image's header is not sparse's")
+    return dict(index=index, t_s=t_s, encoding=("raw8", "png", "sparse")[enc], pose=pose, left_len=llen, right_len=rlen)
 
 
 def decode_batch(data, convention=None, session=None, what="batch"):
