@@ -8,7 +8,7 @@
 use std::collections::HashMap;
 use std::future::Future;
 use std::io::Write;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
@@ -64,6 +64,15 @@ pub trait FrameSource: Send + 'static {
     fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>>;
     /// Frames in all, when known.
     fn frame_count(&self) -> Option<usize>;
+    /// The next frame's `t_s`, when known without producing it.
+    fn peek_t_s(&self) -> Option<f64> {
+        None
+    }
+    /// Passes over the next frame; `false` at the end. A live camera that has moved on does not
+    /// encode what it no longer needs to send.
+    fn skip_frame(&mut self) -> bool {
+        self.next_frame().is_some()
+    }
 }
 
 /// A recording directory, frame by frame. PNG files are sent as they are for `Encoding::Png`.
@@ -118,6 +127,16 @@ impl FrameSource for RecordingSource {
 
     fn frame_count(&self) -> Option<usize> {
         Some(self.recording.frames.len())
+    }
+
+    fn peek_t_s(&self) -> Option<f64> {
+        self.recording.frames.get(self.next).map(|e| e.t_s)
+    }
+
+    fn skip_frame(&mut self) -> bool {
+        let more = self.next < self.recording.frames.len();
+        self.next += usize::from(more);
+        more
     }
 }
 
@@ -208,6 +227,18 @@ pub enum Rate {
     Hz(f64),
 }
 
+impl Rate {
+    /// When a paced frame is due: `t_s` after the first frame's `t0`, or its `position` in the
+    /// stream at `Hz`; at once with `Max`.
+    fn due(self, started: Instant, t0: f64, t_s: f64, position: u64) -> Instant {
+        match self {
+            Rate::Recorded => started + Duration::from_secs_f64((t_s - t0).max(0.0)),
+            Rate::Hz(hz) => started + Duration::from_secs_f64(position as f64 / hz),
+            Rate::Max => started,
+        }
+    }
+}
+
 impl std::str::FromStr for Rate {
     type Err = String;
 
@@ -236,6 +267,13 @@ pub struct ReplayOptions {
     /// Frames sent but not yet answered (by a causal batch, an error or a drop notice) at most,
     /// with `Rate::Max`.
     pub max_in_flight: usize,
+    /// With a paced rate (a live source): frames unanswered at most. A frame due while the
+    /// window is full waits, and is skipped once a newer frame is due: a live source sends its
+    /// newest frame, so a link slower than the stream costs frames, never a growing backlog.
+    pub live_window: usize,
+    /// With a paced rate: once a frame has gone unanswered this long the link is backed up,
+    /// and due frames wait (and are skipped for newer ones) until answers come.
+    pub live_backlog: Duration,
     /// Pipeline parameters to ask for; the server's when `None`.
     pub config: Option<PipelineConfig>,
     /// Keep every batch received in the report (off for endless sources).
@@ -257,6 +295,8 @@ impl ReplayOptions {
             convention: Convention::OpenCv,
             rate: Rate::Recorded,
             max_in_flight: 2,
+            live_window: 8,
+            live_backlog: Duration::from_millis(250),
             config: None,
             keep_batches: true,
             finish_timeout: Duration::from_secs(30),
@@ -280,6 +320,13 @@ pub struct ReplayReport {
     pub refined: Vec<DecodedBatch>,
     /// Frame sent -> its causal batch received, seconds, in frame order.
     pub latencies_s: Vec<f64>,
+    /// Frame due (captured, for a live source) -> its causal batch received, seconds, in frame
+    /// order: how old the vectors are that the wearer sees, link and waiting included.
+    pub ages_s: Vec<f64>,
+    /// Frames a paced source skipped unsent: a newer one was due before they could go.
+    pub frames_skipped: u64,
+    /// The newest frame a causal batch answered.
+    pub last_causal_frame: Option<u64>,
     pub errors: Vec<(ErrorCode, String)>,
     pub dropped_frames: Vec<u64>,
     /// From the server's bye (or its last status).
@@ -320,10 +367,49 @@ pub fn write_batches_csv(out: &mut impl Write, batches: &[DecodedBatch]) -> std:
 }
 
 /// Runs a source through the frame reader thread into a small channel.
-fn spawn_source(mut source: impl FrameSource) -> mpsc::Receiver<Result<SourceFrame, ClientError>> {
+/// A frame and its position in the source's stream (skipped frames count).
+type Positioned = (u64, SourceFrame);
+
+/// Produces the source's frames ahead, on a thread. Once `started` is set, a paced source
+/// behaves as a live camera: a frame already more than a frame interval late when its turn
+/// comes is passed over unproduced (its successor is being captured), so a source slower than
+/// its rate, or a sender held up by the link, loses frames rather than falling ever further
+/// behind.
+fn spawn_source(
+    mut source: impl FrameSource,
+    rate: Rate,
+    started: Arc<OnceLock<Instant>>,
+) -> mpsc::Receiver<Result<Positioned, ClientError>> {
     let (tx, rx) = mpsc::channel(2);
     std::thread::spawn(move || {
-        while let Some(frame) = source.next_frame() {
+        let mut position = 0u64;
+        let mut t0 = None;
+        let mut interval_s = 1.0 / 30.0;
+        let mut last_t_s: Option<f64> = None;
+        loop {
+            if let (Some(&started), Some(t0), Some(t_s)) = (started.get(), t0, source.peek_t_s()) {
+                let late = rate != Rate::Max
+                    && Instant::now()
+                        > rate.due(started, t0, t_s, position)
+                            + Duration::from_secs_f64(interval_s);
+                if late && source.skip_frame() {
+                    position += 1;
+                    last_t_s = Some(t_s);
+                    continue;
+                }
+            }
+            let Some(frame) = source.next_frame() else {
+                break;
+            };
+            let frame = frame.map(|f| {
+                t0.get_or_insert(f.t_s);
+                if let Some(last) = last_t_s.filter(|&last| f.t_s > last) {
+                    interval_s = f.t_s - last;
+                }
+                last_t_s = Some(f.t_s);
+                (position, f)
+            });
+            position += 1;
             let failed = frame.is_err();
             if tx.blocking_send(frame).is_err() || failed {
                 break;
@@ -435,17 +521,19 @@ pub async fn replay(
             }
         }
     });
-    let mut frames = spawn_source(source);
-    let mut pending: HashMap<u64, Instant> = HashMap::new();
-    let mut latencies: Vec<(u64, f64)> = Vec::new();
-    let started = Instant::now();
+    let started_at = Arc::new(OnceLock::new());
+    let mut frames = spawn_source(source, options.rate, Arc::clone(&started_at));
+    // Per unanswered frame: when it was sent, and when it was due.
+    let mut pending: HashMap<u64, (Instant, Instant)> = HashMap::new();
+    let mut latencies: Vec<(u64, f64, f64)> = Vec::new();
+    let started = *started_at.get_or_init(Instant::now);
     let mut last_event = started;
     let mut first_t_s = None;
     let mut next = frames.recv().await.transpose()?;
     let mut finished = false;
     tokio::pin!(stop);
     let mut handle = |report: &mut ReplayReport,
-                      pending: &mut HashMap<u64, Instant>,
+                      pending: &mut HashMap<u64, (Instant, Instant)>,
                       at: Instant,
                       message: Message|
      -> Result<bool, ClientError> {
@@ -454,10 +542,16 @@ pub async fn replay(
                 let batch = decode_batch(&b).map_err(|e| ClientError::Protocol(e.message))?;
                 match batch.kind {
                     BatchKind::Causal => {
-                        if let Some(sent) = pending.remove(&batch.frame_index) {
-                            latencies.push((batch.frame_index, (at - sent).as_secs_f64()));
+                        if let Some((sent, due)) = pending.remove(&batch.frame_index) {
+                            latencies.push((
+                                batch.frame_index,
+                                (at - sent).as_secs_f64(),
+                                (at - due).as_secs_f64(),
+                            ));
                         }
                         report.causal_batches += 1;
+                        report.last_causal_frame =
+                            report.last_causal_frame.max(Some(batch.frame_index));
                         report.causal_vectors += batch.vectors.len() as u64;
                         if options.keep_batches {
                             report.causal.push(batch);
@@ -515,18 +609,45 @@ pub async fn replay(
         Ok(false)
     };
 
-    while let Some(frame) = next.take() {
+    let paced = options.rate != Rate::Max;
+    // A frame taken from the source ahead of its turn, to see whether it overtook the current.
+    let mut ahead: Option<Positioned> = None;
+    // The position the next frame would have if none were skipped.
+    let mut expected_position = 0u64;
+    while let Some((position, frame)) = next.take() {
+        // The source passed over these, late.
+        report.frames_skipped += position.saturating_sub(expected_position);
+        expected_position = position + 1;
         let t0 = *first_t_s.get_or_insert(frame.t_s);
-        let due = match options.rate {
-            Rate::Recorded => started + Duration::from_secs_f64((frame.t_s - t0).max(0.0)),
-            Rate::Hz(hz) => started + Duration::from_secs_f64(report.frames_sent as f64 / hz),
-            Rate::Max => started,
+        let due_of =
+            |frame: &SourceFrame, position: u64| options.rate.due(started, t0, frame.t_s, position);
+        let due = due_of(&frame, position);
+        let window = if paced {
+            options.live_window.max(1)
+        } else {
+            options.max_in_flight.max(1)
         };
-        let window = match options.rate {
-            Rate::Max => options.max_in_flight.max(1),
-            _ => usize::MAX,
-        };
-        if pending.len() < window && Instant::now() >= due {
+        if paced && Instant::now() >= due {
+            if ahead.is_none() {
+                ahead = frames.try_recv().ok().transpose()?;
+            }
+            if ahead
+                .as_ref()
+                .is_some_and(|(at, newer)| Instant::now() >= due_of(newer, *at))
+            {
+                report.frames_skipped += 1;
+                next = ahead.take();
+                continue;
+            }
+        }
+        // A live frame waits while the link is backed up: some frame has gone unanswered for
+        // `live_backlog` (big frames on a slow link: more would only queue in the socket).
+        let backed_up = paced
+            && pending
+                .values()
+                .any(|(sent, _)| sent.elapsed() >= options.live_backlog);
+        let open = pending.len() < window && !backed_up;
+        if open && Instant::now() >= due {
             let message = encode_frame(&FrameMessage {
                 encoding: options.encoding,
                 frame_index: frame.index,
@@ -538,7 +659,9 @@ pub async fn replay(
                 right: &frame.right,
             })
             .map_err(|e| ClientError::Protocol(e.message))?;
-            pending.insert(frame.index, Instant::now());
+            // Unpaced, a frame is due when it can go.
+            let now = Instant::now();
+            pending.insert(frame.index, (now, if paced { due } else { now }));
             if let Err(e) = sink.send(Message::binary(message)).await {
                 // The server may have said bye (shutting down) while this frame was going out.
                 while let Ok((at, m)) = events.try_recv() {
@@ -553,12 +676,23 @@ pub async fn replay(
                 return Err(e.into());
             }
             report.frames_sent += 1;
-            progress(report.frames_sent);
-            next = frames.recv().await.transpose()?;
+            progress(report.frames_sent + report.frames_skipped);
+            next = match ahead.take() {
+                Some(frame) => Some(frame),
+                None => frames.recv().await.transpose()?,
+            };
             continue;
         }
-        next = Some(frame);
-        let open = pending.len() < window;
+        next = Some((position, frame));
+        expected_position = position;
+        // Backed up, the wait ends with an answer, or when the next frame is due (to skip this
+        // one for it).
+        let wake = if open {
+            due
+        } else {
+            let interval = Duration::from_secs_f64(1.0 / 30.0);
+            due.max(Instant::now()) + interval
+        };
         tokio::select! {
             event = events.recv() => match event {
                 Some((at, m)) => {
@@ -570,7 +704,7 @@ pub async fn replay(
                 }
                 None => { finished = true; break; }
             },
-            _ = tokio::time::sleep_until(due.into()), if open => {}
+            _ = tokio::time::sleep_until(wake.into()), if paced || open => {}
             _ = &mut stop => break,
         }
     }
@@ -592,8 +726,9 @@ pub async fn replay(
     }
     let _ = sink.close().await;
     reader.abort();
-    latencies.sort_by_key(|(index, _)| *index);
-    report.latencies_s = latencies.into_iter().map(|(_, s)| s).collect();
+    latencies.sort_by_key(|(index, ..)| *index);
+    report.ages_s = latencies.iter().map(|l| l.2).collect();
+    report.latencies_s = latencies.into_iter().map(|l| l.1).collect();
     report.elapsed_s = (last_event - started).as_secs_f64();
     Ok(report)
 }

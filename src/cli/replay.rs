@@ -24,6 +24,11 @@ pub struct Args {
     /// With --rate max: frames sent but not yet answered, at most.
     #[arg(long, default_value_t = 2)]
     in_flight: usize,
+    /// With a paced rate (recorded or Hz, as a live headset): frames unanswered at most; a
+    /// frame that cannot go before a newer one is due is skipped, so a slow link costs frames,
+    /// never a growing delay.
+    #[arg(long, default_value_t = 8)]
+    live_window: usize,
     /// Image encoding on the wire: raw8, png (the recording's files, sent as they are) or sparse
     /// (particles exact, background coarse: what a headset's Wi-Fi carries).
     #[arg(long, default_value = "raw8")]
@@ -69,6 +74,7 @@ pub fn run(args: Args) -> Result<()> {
     let options = ReplayOptions {
         rate: args.rate,
         max_in_flight: args.in_flight,
+        live_window: args.live_window,
         encoding: args.encoding,
         convention: args.convention,
         config,
@@ -125,7 +131,12 @@ pub(super) fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
         latencies_s: reports.iter().flat_map(|r| r.latencies_s.clone()).collect(),
         ..Default::default()
     };
+    let ages = ReplayReport {
+        latencies_s: reports.iter().flat_map(|r| r.ages_s.clone()).collect(),
+        ..Default::default()
+    };
     let ms = |p: f64| all.latency_percentile_s(p).map(|s| s * 1e3);
+    let age_ms = |p: f64| ages.latency_percentile_s(p).map(|s| s * 1e3);
     let sum = |f: &dyn Fn(&ReplayReport) -> u64| reports.iter().map(f).sum::<u64>();
     let counter = |f: &dyn Fn(&mrptv::protocol::Counters) -> u64| {
         reports
@@ -138,6 +149,8 @@ pub(super) fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
         "headsets": reports.len(),
         "sessions": reports.iter().map(|r| r.session.clone()).collect::<Vec<_>>(),
         "frames_sent": sum(&|r| r.frames_sent),
+        "frames_skipped": sum(&|r| r.frames_skipped),
+        "last_causal_frame": reports.iter().filter_map(|r| r.last_causal_frame).max(),
         "frames_processed": counter(&|c| c.frames_processed),
         "frames_dropped": counter(&|c| c.frames_dropped),
         "frames_rejected": counter(&|c| c.frames_rejected),
@@ -148,6 +161,7 @@ pub(super) fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
         "elapsed_s": elapsed_s,
         "frames_per_s": sum(&|r| r.frames_sent) as f64 / elapsed_s.max(1e-9),
         "latency_ms": {"p50": ms(50.0), "p90": ms(90.0), "p99": ms(99.0), "max": ms(100.0), "samples": all.latencies_s.len()},
+        "age_ms": {"p50": age_ms(50.0), "p90": age_ms(90.0), "p99": age_ms(99.0), "max": age_ms(100.0)},
         "mean_processing_ms": reports.iter().filter_map(|r| r.counters.map(|c| c.processing_ms_mean)).sum::<f64>() / reports.len() as f64,
     });
     if json {
@@ -156,12 +170,13 @@ pub(super) fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
     }
     let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1} ms"));
     println!(
-        "{} headset(s), sessions {}: {} frames sent in {:.1} s ({:.1} frames/s)",
+        "{} headset(s), sessions {}: {} frames sent in {:.1} s ({:.1} frames/s), {} skipped unsent (a newer frame was due)",
         reports.len(),
         summary["sessions"],
         summary["frames_sent"],
         elapsed_s,
-        summary["frames_per_s"].as_f64().unwrap_or(0.0)
+        summary["frames_per_s"].as_f64().unwrap_or(0.0),
+        summary["frames_skipped"]
     );
     println!(
         "server: {} processed, {} dropped (queue full), {} rejected, {} batches undelivered; pipeline {:.2} ms/frame mean",
@@ -182,6 +197,13 @@ pub(super) fn print_replay(reports: &[ReplayReport], json: bool) -> Result<()> {
         f(ms(90.0)),
         f(ms(99.0)),
         f(ms(100.0))
+    );
+    println!(
+        "age, frame due -> causal vectors received: p50 {}, p90 {}, p99 {}, max {}",
+        f(age_ms(50.0)),
+        f(age_ms(90.0)),
+        f(age_ms(99.0)),
+        f(age_ms(100.0))
     );
     for r in reports {
         for (code, message) in r.errors.iter().take(5) {
