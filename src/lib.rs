@@ -68,3 +68,5 @@ pub mod synth;
 pub mod tables;
 #[cfg(feature = "service")]
 pub mod tls;
+#[cfg(feature = "service")]
+pub mod video;

@@ -29,8 +29,8 @@ pub enum OfflineError {
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
     Eval(#[from] EvalError),
-    #[error("images through the {encoding:?} encoding: {message}")]
-    Wire { encoding: Encoding, message: String },
+    #[error("images through {wire}: {message}")]
+    Wire { wire: Wire, message: String },
     #[error("{path}: {error}")]
     Io {
         path: PathBuf,
@@ -531,10 +531,35 @@ pub struct InMemoryRun {
     pub wire: WireSummary,
 }
 
-/// What a run's images cost on a headset's link in a frame encoding.
+/// How a run's images travel from the cameras to the engine.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Wire {
+    /// A frame encoding of the protocol, as a headset sends it.
+    Frames(Encoding),
+    /// hl2ss's H.264 streams at this bitrate a camera (one IDR a second), as
+    /// `mrptv hl2ss --codec h264` receives them.
+    H264 { bitrate_bps: u32 },
+}
+
+impl std::fmt::Display for Wire {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Wire::Frames(encoding) => write!(f, "{encoding:?} frames"),
+            Wire::H264 { bitrate_bps } => {
+                write!(
+                    f,
+                    "H.264 at {:.1} Mbit/s a camera",
+                    f64::from(*bitrate_bps) / 1e6
+                )
+            }
+        }
+    }
+}
+
+/// What a run's images cost on a headset's link.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WireSummary {
-    pub encoding: Encoding,
+    pub wire: Wire,
     pub images: usize,
     pub bytes: u64,
     /// Encoding (the headset's work) and decoding (the server's), all images, seconds.
@@ -571,7 +596,7 @@ pub fn run_in_memory(
     progress: impl FnMut(usize),
 ) -> Result<InMemoryRun, OfflineError> {
     run_in_memory_over(
-        Encoding::Raw8,
+        Wire::Frames(Encoding::Raw8),
         spec,
         config,
         frames,
@@ -582,12 +607,12 @@ pub fn run_in_memory(
     )
 }
 
-/// A synthetic run whose images go through a frame encoding (encoded as a headset would,
-/// decoded as the server does) before the pipeline: what that encoding costs in accuracy and
-/// bandwidth.
+/// A synthetic run whose images travel over `wire` (encoded as a headset or hl2ss would,
+/// decoded as the server or the bridge does) before the pipeline: what that costs in accuracy
+/// and bandwidth.
 #[allow(clippy::too_many_arguments)]
 pub fn run_in_memory_over(
-    wire: Encoding,
+    wire: Wire,
     spec: ScenarioSpec,
     config: PipelineConfig,
     frames: usize,
@@ -600,26 +625,66 @@ pub fn run_in_memory_over(
     let pixels = spec.rig.width as usize * spec.rig.height as usize;
     let (width, height) = (spec.rig.width, spec.rig.height);
     let mut summary = WireSummary {
-        encoding: wire,
+        wire,
         images: 0,
         bytes: 0,
         encode_s: 0.0,
         decode_s: 0.0,
     };
-    let mut through_wire = |image: Vec<u8>| -> Result<Vec<u8>, OfflineError> {
-        summary.images += 1;
-        if wire == Encoding::Raw8 {
-            summary.bytes += image.len() as u64;
-            return Ok(image);
+    let failed = |message: String| OfflineError::Wire { wire, message };
+    // One stream per camera: a video codec carries state from frame to frame.
+    let mut streams = match wire {
+        Wire::H264 { bitrate_bps } => {
+            let fps = (1.0 / spec.frame_interval_s) as f32;
+            let stream = || -> Result<_, OfflineError> {
+                Ok((
+                    crate::video::H264Encoder::new(
+                        width,
+                        height,
+                        bitrate_bps,
+                        fps,
+                        fps.round() as u32,
+                    )
+                    .map_err(|e| failed(e.to_string()))?,
+                    crate::video::H264Decoder::new(width, height)
+                        .map_err(|e| failed(e.to_string()))?,
+                ))
+            };
+            Some([stream()?, stream()?])
         }
-        let failed = |message| OfflineError::Wire {
-            encoding: wire,
-            message,
-        };
+        Wire::Frames(_) => None,
+    };
+    let mut through_wire = |camera: usize, image: Vec<u8>| -> Result<Vec<u8>, OfflineError> {
+        summary.images += 1;
         let started = Instant::now();
-        let sent = wire.encode_image(&image, width, height).map_err(failed)?;
-        let encoded = Instant::now();
-        let received = wire.decode_image(&sent, width, height).map_err(failed)?;
+        let (sent, encoded, received) = match (wire, &mut streams) {
+            (Wire::Frames(Encoding::Raw8), _) => {
+                summary.bytes += image.len() as u64;
+                return Ok(image);
+            }
+            (Wire::Frames(encoding), _) => {
+                let sent = encoding
+                    .encode_image(&image, width, height)
+                    .map_err(failed)?;
+                let encoded = Instant::now();
+                let received = encoding
+                    .decode_image(&sent, width, height)
+                    .map_err(failed)?;
+                (sent, encoded, received)
+            }
+            (Wire::H264 { .. }, streams) => {
+                let Some((encoder, decoder)) = streams.as_mut().map(|s| &mut s[camera]) else {
+                    return Err(failed("no H.264 stream".into()));
+                };
+                let sent = encoder.encode(&image).map_err(|e| failed(e.to_string()))?;
+                let encoded = Instant::now();
+                let received = decoder
+                    .decode(&sent)
+                    .map_err(|e| failed(e.to_string()))?
+                    .ok_or_else(|| failed("the decoder gave no picture for a frame".into()))?;
+                (sent, encoded, received)
+            }
+        };
         summary.encode_s += (encoded - started).as_secs_f64();
         summary.decode_s += encoded.elapsed().as_secs_f64();
         summary.bytes += sent.len() as u64;
@@ -633,8 +698,8 @@ pub fn run_in_memory_over(
     let mut totals = RunTotals::for_pipeline(&pipeline);
     for n in 0..frames {
         let mut f = synth.next_frame();
-        f.left = through_wire(std::mem::take(&mut f.left))?;
-        f.right = through_wire(std::mem::take(&mut f.right))?;
+        f.left = through_wire(0, std::mem::take(&mut f.left))?;
+        f.right = through_wire(1, std::mem::take(&mut f.right))?;
         let output = push_pixels(
             &mut pipeline,
             &mut totals,

@@ -437,7 +437,7 @@ fn causal_estimates_measure_the_flow() {
 /// velocity errors within 10 % of raw images' and the same yield (within 3 %).
 #[test]
 fn sparse_images_fit_a_headsets_link_and_keep_the_accuracy() {
-    use mrptv::offline::run_in_memory_over;
+    use mrptv::offline::{run_in_memory_over, Wire};
     use mrptv::protocol::Encoding;
     for scenario in [Scenario::Flume, Scenario::MovingHead, Scenario::HololensRaw] {
         let spec = ScenarioSpec::new(scenario);
@@ -460,7 +460,10 @@ fn sparse_images_fit_a_headsets_link_and_keep_the_accuracy() {
             )
             .expect("scenario runs")
         };
-        let (raw, sparse) = (run(Encoding::Raw8), run(Encoding::Sparse));
+        let (raw, sparse) = (
+            run(Wire::Frames(Encoding::Raw8)),
+            run(Wire::Frames(Encoding::Sparse)),
+        );
         let (r, s) = (
             &raw.report.relative_rms_velocity_error,
             &sparse.report.relative_rms_velocity_error,

@@ -72,11 +72,26 @@ fn fake_camera(
             let mut options = vec![0u8; StreamConfig::options_bytes(&head)];
             stream.read_exact(&mut options).expect("options");
             let config = StreamConfig::decode(&[&head[..], &options].concat()).expect("config");
-            assert_eq!(
-                config,
-                StreamConfig::raw_with_poses(),
-                "the bridge asks for raw + poses"
-            );
+            // Byte for byte what hl2ss's own client asks for: raw, or H.264 at some bitrate.
+            let h264 = config.profile == mrptv::hl2ss::PROFILE_H264_BASE;
+            let expected = if h264 {
+                StreamConfig::h264_with_poses(config.bitrate)
+            } else {
+                StreamConfig::raw_with_poses()
+            };
+            assert_eq!(config, expected, "the bridge asks as hl2ss's client does");
+            // Real encoded video, each access unit led by an access unit delimiter as the
+            // HoloLens's encoder writes them.
+            let mut encoder = h264.then(|| {
+                mrptv::video::H264Encoder::new(
+                    rec.rig.width,
+                    rec.rig.height,
+                    config.bitrate,
+                    30.0,
+                    mrptv::hl2ss::H264_GOP_FRAMES as u32,
+                )
+                .expect("encoder")
+            });
             // Stamped as a current hl2ss server does: host ticks, moved by the client's
             // options (none: raw host ticks), and the pose located at that stamp.
             let option = |key: u64| config.options.iter().find(|(k, _)| *k == key).map(|o| o.1);
@@ -108,7 +123,14 @@ fn fake_camera(
                     gain: 1,
                     pose: Some(row_vector_from_isometry(&world_from_node)),
                 };
-                if stream.write_all(&frame.encode()).is_err() {
+                let bytes = match &mut encoder {
+                    None => frame.encode(),
+                    Some(encoder) => {
+                        let unit = encoder.encode(&frame.pixels).expect("encodes");
+                        frame.encode_as(&[&[0, 0, 0, 1, 9, 0x10][..], &unit].concat())
+                    }
+                };
+                if stream.write_all(&bytes).is_err() {
                     break;
                 }
                 // hl2ss streams at the cameras' 30 Hz.
@@ -171,6 +193,19 @@ fn max_abs(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
+    bridge_session(&[]).await;
+}
+
+/// The same HoloLens streaming H.264 (as over Wi-Fi), decoded by the bridge.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fake_hololens_streaming_h264_is_decoded_by_the_bridge() {
+    bridge_session(&["--codec", "h264", "--bitrate-mbps", "2.5"]).await;
+}
+
+/// `mrptv hl2ss` with `codec_args` against the fake HoloLens, a recording server, and a fake
+/// message queue; everything checked.
+async fn bridge_session(codec_args: &[&str]) {
+    let h264 = !codec_args.is_empty();
     let tmp = tempfile::tempdir().expect("tmp");
     let frames = 40;
     // HoloLens 2 geometry on a moving head: a pose located off mid-exposure is another pose.
@@ -222,7 +257,10 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
         arrows.to_string(),
         "--hologram-rate".into(),
         "10".into(),
-    ];
+    ]
+    .into_iter()
+    .chain(codec_args.iter().map(|a| a.to_string()))
+    .collect::<Vec<String>>();
     let started = std::time::Instant::now();
     let out = tokio::task::spawn_blocking(move || {
         std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
@@ -294,12 +332,32 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
                 * original.world_from_rig.expect("posed")),
         );
         assert!(d < 1e-5, "frame {}: pose off by {d}", got.index);
-        assert_eq!(
+        let (got_images, original_images) = (
             recorded.load(got).expect("recorded"),
             rec.load(original).expect("original"),
-            "frame {}",
-            got.index
         );
+        if h264 {
+            // What the decoder gave: the image within the codec's loss.
+            for (a, b) in [
+                (&got_images.0, &original_images.0),
+                (&got_images.1, &original_images.1),
+            ] {
+                let mean_abs = a
+                    .iter()
+                    .zip(b.iter())
+                    .map(|(x, y)| f64::from(x.abs_diff(*y)))
+                    .sum::<f64>()
+                    / a.len() as f64;
+                assert!(
+                    mean_abs < 3.0,
+                    "frame {}: {mean_abs:.2} grey levels off",
+                    got.index
+                );
+                assert_ne!(a, b, "frame {}: decoded, not raw", got.index);
+            }
+        } else {
+            assert_eq!(got_images, original_images, "frame {}", got.index);
+        }
     }
     let (fitted, truth) = (&recorded.rig, &rec.rig);
     for (a, b) in [(fitted.left, truth.left), (fitted.right, truth.right)] {

@@ -3,7 +3,7 @@
 use anyhow::{bail, Result};
 
 use mrptv::eval::EvalOptions;
-use mrptv::offline;
+use mrptv::offline::{self, Wire};
 use mrptv::protocol::Encoding;
 use mrptv::ptv::PipelineConfig;
 use mrptv::synth::{Scenario, ScenarioSpec};
@@ -32,6 +32,10 @@ pub struct Args {
     /// and report its bandwidth and coding time next to the accuracy it gives.
     #[arg(long, default_value = "raw8")]
     encoding: Encoding,
+    /// Send the images as hl2ss's H.264 streams at this many Mbit/s a camera (one IDR a
+    /// second) instead, as `mrptv hl2ss --codec h264 --bitrate-mbps` receives them.
+    #[arg(long, value_name = "MBIT_PER_S", conflicts_with = "encoding")]
+    h264_mbps: Option<f64>,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -43,7 +47,15 @@ pub fn run(args: Args) -> Result<()> {
         method,
         depth_range,
         encoding,
+        h264_mbps,
     } = args;
+    let wire = match h264_mbps {
+        Some(mbps) if mbps > 0.0 && mbps.is_finite() => Wire::H264 {
+            bitrate_bps: (mbps * 1e6) as u32,
+        },
+        Some(mbps) => bail!("--h264-mbps {mbps}: must be a positive number of Mbit/s"),
+        None => Wire::Frames(encoding),
+    };
     let spec = ScenarioSpec::new(scenario);
     let frames = frames.unwrap_or(spec.default_frames);
     let particles = particles.unwrap_or(spec.default_particles);
@@ -68,7 +80,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let pairs_per_s = 1.0 / spec.frame_interval_s;
     let run = offline::run_in_memory_over(
-        encoding,
+        wire,
         spec,
         config.clone(),
         frames,
@@ -90,13 +102,14 @@ pub fn run(args: Args) -> Result<()> {
         run.totals.counts.matches as f64 / run.totals.frames.max(1) as f64,
         run.totals.counts.vectors
     );
-    let wire = &run.wire;
+    let summary = &run.wire;
     println!(
-        "wire: {encoding:?}, {:.0} bytes per stereo pair, {:.1} Mbit/s at {pairs_per_s:.0} Hz; encoder {:.2} ms, decoder {:.2} ms per image\n",
-        wire.bytes_per_pair(),
-        wire.mbit_per_s(pairs_per_s),
-        wire.encode_ms_per_image(),
-        wire.decode_ms_per_image()
+        "wire: {}, {:.0} bytes per stereo pair, {:.1} Mbit/s at {pairs_per_s:.0} Hz; encoder {:.2} ms, decoder {:.2} ms per image\n",
+        summary.wire,
+        summary.bytes_per_pair(),
+        summary.mbit_per_s(pairs_per_s),
+        summary.encode_ms_per_image(),
+        summary.decode_ms_per_image()
     );
     print!("{}", run.report);
     Ok(())

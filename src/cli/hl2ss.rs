@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use mrptv::client::{self, Rate, ReplayOptions, ReplayReport};
 use mrptv::hl2ss::bridge::{calibrate, BridgeCounters, Hl2ssEndpoints, Hl2ssSource};
 use mrptv::hl2ss::holograms::{self, Painter};
+use mrptv::hl2ss::VlcCodec;
 use mrptv::protocol::Convention;
 
 use super::args::IngestSecret;
@@ -66,6 +67,15 @@ pub struct Args {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+    /// How hl2ss sends the images: raw (uncompressed, 74 Mbit/s a camera: a wired or very good
+    /// link) or h264 (compressed on the HoloLens: Wi-Fi). hevc, hl2ss's own default, is refused:
+    /// this build has no HEVC decoder.
+    #[arg(long, default_value = "raw")]
+    codec: VlcCodec,
+    /// With --codec h264: the bitrate hl2ss encodes each camera at, Mbit/s (README: what each
+    /// costs in accuracy).
+    #[arg(long, default_value_t = 2.5, value_name = "MBIT_PER_S")]
+    bitrate_mbps: f64,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -75,6 +85,13 @@ pub fn run(args: Args) -> Result<()> {
     let pair_tolerance_ms = args.pair_tolerance_ms;
     if !(pair_tolerance_ms.is_finite() && pair_tolerance_ms > 0.0 && pair_tolerance_ms <= 1000.0) {
         bail!("--pair-tolerance-ms must be between 0 and 1000, not {pair_tolerance_ms}");
+    }
+    let (codec, bitrate_mbps) = (args.codec, args.bitrate_mbps);
+    if codec == VlcCodec::Hevc {
+        bail!("--codec hevc: this build decodes H.264 only (OpenH264); use --codec h264 (or raw)");
+    }
+    if !(bitrate_mbps.is_finite() && (0.1..=100.0).contains(&bitrate_mbps)) {
+        bail!("--bitrate-mbps must be between 0.1 and 100, not {bitrate_mbps}");
     }
     init_logging("warn");
     let endpoints = Hl2ssEndpoints {
@@ -105,6 +122,8 @@ pub fn run(args: Args) -> Result<()> {
         &endpoints,
         rig,
         std::time::Duration::from_secs_f64(pair_tolerance_ms / 1e3),
+        codec,
+        (bitrate_mbps * 1e6) as u32,
     ) {
         Ok(source) => source,
         Err(e) => {

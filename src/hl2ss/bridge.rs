@@ -17,9 +17,10 @@ use crate::client::{ClientError, FrameSource, SourceFrame};
 use crate::geometry::StereoRig;
 use crate::hl2ss::{
     decode_header, fit_lens, isometry_from_row_vector, stereo_rig, LensFit, Pairer, StreamConfig,
-    VlcCalibration, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES, TICKS_PER_SECOND,
-    VLC_HEIGHT, VLC_WIDTH,
+    VlcCalibration, VlcCodec, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES,
+    TICKS_PER_SECOND, VLC_HEIGHT, VLC_WIDTH,
 };
+use crate::video::H264Decoder;
 
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {
@@ -157,10 +158,11 @@ enum Side {
     Right = 1,
 }
 
-/// Reads one camera's raw frames with poses until the stream ends.
+/// Reads one camera's frames with poses until the stream ends, decoding H.264 ones.
 fn read_stream(
     mut stream: TcpStream,
     camera: &'static str,
+    codec: VlcCodec,
     side: fn(VlcFrame) -> (Side, VlcFrame),
     frames: std_mpsc::SyncSender<Result<(Side, VlcFrame), BridgeError>>,
 ) {
@@ -173,6 +175,19 @@ fn read_stream(
                 format!("nothing received for {} s", STREAM_SILENCE.as_secs())
             }
             _ => error.to_string(),
+        },
+    };
+    let video = |error: crate::video::VideoError| {
+        format(crate::hl2ss::Hl2ssError::Frame(error.to_string()))
+    };
+    let mut decoder = match codec {
+        VlcCodec::Raw | VlcCodec::Hevc => None,
+        VlcCodec::H264 => match H264Decoder::new(VLC_WIDTH, VLC_HEIGHT) {
+            Ok(d) => Some(d),
+            Err(e) => {
+                let _ = frames.send(Err(video(e)));
+                return;
+            }
         },
     };
     loop {
@@ -190,9 +205,24 @@ fn read_stream(
             let mut payload = vec![0u8; size + POSE_BYTES];
             match stream.read_exact(&mut payload) {
                 Err(e) => Err(ended(e)),
-                Ok(()) => VlcFrame::decode(timestamp, &payload[..size], Some(&payload[size..]))
+                Ok(()) => {
+                    let (payload, pose) = payload.split_at(size);
+                    match &mut decoder {
+                        None => VlcFrame::decode(timestamp, payload, Some(pose)),
+                        Some(decoder) => VlcFrame::decode_with(timestamp, payload, Some(pose), |unit| {
+                            decoder
+                                .decode(unit)
+                                .map_err(|e| crate::hl2ss::Hl2ssError::Frame(e.to_string()))?
+                                .ok_or_else(|| {
+                                    crate::hl2ss::Hl2ssError::Frame(
+                                        "an H.264 frame gave no picture: the stream must start with an IDR frame".into(),
+                                    )
+                                })
+                        }),
+                    }
                     .map(side)
-                    .map_err(format),
+                    .map_err(format)
+                }
             }
         };
         let failed = frame.is_err();
@@ -284,12 +314,24 @@ pub struct Hl2ssSource {
 const MAX_BACKLOG_PAIRS: usize = 4;
 
 impl Hl2ssSource {
-    /// Opens both streams (raw, with poses).
+    /// Opens both streams with poses, raw or H.264 at `bitrate` bits a second a camera.
     pub fn open(
         endpoints: &Hl2ssEndpoints,
         rig: BridgeRig,
         pair_tolerance: Duration,
+        codec: VlcCodec,
+        bitrate: u32,
     ) -> Result<Self, BridgeError> {
+        let config = match codec {
+            VlcCodec::Raw => StreamConfig::raw_with_poses(),
+            VlcCodec::H264 => StreamConfig::h264_with_poses(bitrate),
+            VlcCodec::Hevc => {
+                return Err(BridgeError::Rig(crate::hl2ss::Hl2ssError::Configuration(
+                    "hevc: this build decodes H.264 only (OpenH264); ask for --codec h264 (or raw)"
+                        .into(),
+                )))
+            }
+        };
         let (tx, frames) = std_mpsc::sync_channel(8);
         for (camera, port, side) in [
             (
@@ -302,7 +344,7 @@ impl Hl2ssSource {
             let mut stream = endpoints.connect(camera, port)?;
             let _ = stream.set_read_timeout(Some(STREAM_SILENCE));
             stream
-                .write_all(&StreamConfig::raw_with_poses().encode())
+                .write_all(&config.encode())
                 .map_err(|error| BridgeError::Io {
                     camera,
                     addr: format!("{}:{port}", endpoints.host),
@@ -311,7 +353,7 @@ impl Hl2ssSource {
             let tx = tx.clone();
             std::thread::Builder::new()
                 .name(format!("hl2ss-{camera}"))
-                .spawn(move || read_stream(stream, camera, side, tx))
+                .spawn(move || read_stream(stream, camera, codec, side, tx))
                 .map_err(|error| BridgeError::Io {
                     camera,
                     addr: format!("{}:{port}", endpoints.host),

@@ -43,6 +43,14 @@ pub const HEADER_BYTES: usize = 12;
 /// uv2x, uv2y, extrinsics, mapx, mapy, K.
 pub const CALIBRATION_FLOATS: usize = 4 * VLC_PIXELS + 16 + 4;
 pub const PROFILE_RAW: u8 = 0xFF;
+/// hl2ss's `VideoProfile.H264_BASE`: constrained baseline, what OpenH264 decodes.
+pub const PROFILE_H264_BASE: u8 = 0;
+/// hl2ss's `VideoProfile.H265_MAIN`.
+pub const PROFILE_H265_MAIN: u8 = 3;
+/// hl2ss's client default GOP for encoded streams: one IDR (with its SPS and PPS) a second.
+pub const H264_GOP_FRAMES: u64 = 30;
+/// hl2ss's client default bitrate for an H.264 VLC stream: `640 * 480 * 30 * 12 / 75`.
+pub const H264_DEFAULT_BITRATE: u32 = 1_474_560;
 pub const LEVEL_DEFAULT: u8 = 0xFF;
 /// hl2ss's own default for raw VLC streams (the server refuses 0 even when raw).
 pub const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
@@ -74,6 +82,27 @@ pub enum Hl2ssError {
     Calibration(String),
     #[error("pose: {0}")]
     Pose(String),
+}
+
+/// How a camera's images come: raw, or compressed by the HoloLens's encoder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VlcCodec {
+    Raw,
+    H264,
+    /// hl2ss's client default; this build has no HEVC decoder and refuses it.
+    Hevc,
+}
+
+impl std::str::FromStr for VlcCodec {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "raw" => Ok(VlcCodec::Raw),
+            "h264" => Ok(VlcCodec::H264),
+            "hevc" => Ok(VlcCodec::Hevc),
+            _ => Err(format!("{s:?}: expected raw, h264 or hevc")),
+        }
+    }
 }
 
 /// What the client asks a stream for.
@@ -114,6 +143,17 @@ impl StreamConfig {
                 (OPTION_TICKS_OFFSET_CONSTANT, TICKS_OFFSET_CONSTANT as u64),
             ],
         }
+    }
+
+    /// H.264 (constrained baseline) at `bitrate` bits a second with poses: exactly what hl2ss's
+    /// own client (`hl2ss_lnm.rx_rm_vlc(mode=MODE_1, profile=H264_BASE, bitrate=...)`) sends:
+    /// its default GOP option, then the two timestamp options.
+    pub fn h264_with_poses(bitrate: u32) -> Self {
+        let mut config = Self::raw_with_poses();
+        config.profile = PROFILE_H264_BASE;
+        config.bitrate = bitrate;
+        config.options[0] = (OPTION_GOP_SIZE, H264_GOP_FRAMES);
+        config
     }
 
     pub fn calibration() -> Self {
@@ -240,7 +280,24 @@ impl VlcFrame {
                 VLC_PIXELS + VLC_METADATA_BYTES
             )));
         }
-        let trailer = &payload[VLC_PIXELS..];
+        Self::decode_with(timestamp, payload, pose, |pixels| Ok(pixels.to_vec()))
+    }
+
+    /// From any payload (the image as the stream's codec sent it, then the 24-byte trailer),
+    /// `image` turning the codec's bytes into 640x480 pixels.
+    pub fn decode_with(
+        timestamp: u64,
+        payload: &[u8],
+        pose: Option<&[u8]>,
+        image: impl FnOnce(&[u8]) -> Result<Vec<u8>, Hl2ssError>,
+    ) -> Result<Self, Hl2ssError> {
+        let Some(image_bytes) = payload.len().checked_sub(VLC_METADATA_BYTES) else {
+            return Err(Hl2ssError::Frame(format!(
+                "payload of {} bytes, shorter than its {VLC_METADATA_BYTES}-byte trailer",
+                payload.len()
+            )));
+        };
+        let trailer = &payload[image_bytes..];
         let u64_at = |at: usize| {
             let mut a = [0; 8];
             a.copy_from_slice(&trailer[at..at + 8]);
@@ -263,9 +320,16 @@ impl VlcFrame {
                 (m[15] != 0.0).then_some(m)
             }
         };
+        let pixels = image(&payload[..image_bytes])?;
+        if pixels.len() != VLC_PIXELS {
+            return Err(Hl2ssError::Frame(format!(
+                "an image of {} pixels, not 640x480",
+                pixels.len()
+            )));
+        }
         Ok(Self {
             timestamp,
-            pixels: payload[..VLC_PIXELS].to_vec(),
+            pixels,
             sensor_ticks: u64_at(0),
             exposure: u64_at(8),
             gain: u32::from_le_bytes([trailer[16], trailer[17], trailer[18], trailer[19]]),
@@ -273,13 +337,18 @@ impl VlcFrame {
         })
     }
 
-    /// The frame as hl2ss sends it (a fake server's side).
+    /// The frame as hl2ss sends it raw (a fake server's side).
     pub fn encode(&self) -> Vec<u8> {
-        let payload = VLC_PIXELS + VLC_METADATA_BYTES;
+        self.encode_as(&self.pixels)
+    }
+
+    /// The frame as hl2ss sends it with its image as `image` (a codec's bytes for it).
+    pub fn encode_as(&self, image: &[u8]) -> Vec<u8> {
+        let payload = image.len() + VLC_METADATA_BYTES;
         let mut b = Vec::with_capacity(HEADER_BYTES + payload + POSE_BYTES);
         b.extend_from_slice(&self.timestamp.to_le_bytes());
         b.extend_from_slice(&(payload as u32).to_le_bytes());
-        b.extend_from_slice(&self.pixels);
+        b.extend_from_slice(image);
         b.extend_from_slice(&self.sensor_ticks.to_le_bytes());
         b.extend_from_slice(&self.exposure.to_le_bytes());
         b.extend_from_slice(&self.gain.to_le_bytes());
@@ -784,6 +853,14 @@ mod tests {
         }
         assert_eq!(b.len(), 57);
         assert_eq!(b, hl2ss);
+        // The same client asked for H.264 (profile H264_BASE) at 2.5 Mbit/s: its default GOP of
+        // 30 frames instead of 1, the rest alike.
+        let h264 = StreamConfig::h264_with_poses(2_500_000).encode();
+        let mut expected = hl2ss.clone();
+        expected[2] = 0;
+        expected[4..8].copy_from_slice(&2_500_000u32.to_le_bytes());
+        expected[17..25].copy_from_slice(&30u64.to_le_bytes());
+        assert_eq!(h264, expected);
         assert_eq!(StreamConfig::decode(&b), Ok(raw));
         assert_eq!(StreamConfig::calibration().encode(), vec![2]);
         assert!(StreamConfig::decode(&b[..20]).is_err());
