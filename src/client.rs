@@ -366,7 +366,6 @@ pub fn write_batches_csv(out: &mut impl Write, batches: &[DecodedBatch]) -> std:
     Ok(())
 }
 
-/// Runs a source through the frame reader thread into a small channel.
 /// A frame and its position in the source's stream (skipped frames count).
 type Positioned = (u64, SourceFrame);
 
