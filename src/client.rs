@@ -486,6 +486,7 @@ pub async fn replay(
         },
         convention: options.convention,
         config: options.config.clone(),
+        uncertainty: false,
     }));
     let hello = serde_json::to_string(&hello).map_err(|e| ClientError::Protocol(e.to_string()))?;
     sink.send(Message::text(hello)).await?;

@@ -97,6 +97,60 @@ pub struct Report {
     /// Rows agreeing with their track's most frequent truth particle / associated rows.
     pub track_purity: f64,
     pub by_depth: Vec<DepthBin>,
+    /// How well the vectors' stated uncertainties cover their errors; `None` for a tracks file
+    /// without them.
+    pub uncertainty: Option<Coverage>,
+}
+
+/// Per component, the fraction of associated vectors whose error lies within 1 and 2 of their
+/// stated sigmas (a Gaussian error with the right sigma gives 68.3 % and 95.4 %).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Coverage {
+    pub rows: usize,
+    pub velocity_within_1_sigma: Xyz,
+    pub velocity_within_2_sigma: Xyz,
+    pub position_within_1_sigma: Xyz,
+    pub position_within_2_sigma: Xyz,
+    /// Median stated velocity sigma over the median speed: how large the uncertainties are.
+    pub median_velocity_sigma_m_per_s: Xyz,
+}
+
+fn coverage(associations: &[Association]) -> Option<Coverage> {
+    let with_sigma: Vec<(&Association, Vector3<f64>, Vector3<f64>)> = associations
+        .iter()
+        .filter_map(|a| a.row.sigma.map(|(v, p)| (a, v, p)))
+        .collect();
+    if with_sigma.is_empty() {
+        return None;
+    }
+    let n = with_sigma.len() as f64;
+    let within = |k: f64, error: &dyn Fn(&Association) -> Vector3<f64>, velocity: bool| {
+        let mut count = Vector3::zeros();
+        for (a, sv, sp) in &with_sigma {
+            let sigma = if velocity { sv } else { sp };
+            let e = error(a);
+            for c in 0..3 {
+                if e[c].abs() <= k * sigma[c] {
+                    count[c] += 1.0;
+                }
+            }
+        }
+        Xyz::from(count / n)
+    };
+    let velocity_error = |a: &Association| a.row.velocity - a.truth.velocity;
+    let position_error = |a: &Association| a.row.position - a.truth.position;
+    let median_sigma = Vector3::from_fn(|c, _| {
+        let mut values: Vec<f64> = with_sigma.iter().map(|(_, sv, _)| sv[c]).collect();
+        crate::ptv::link::median(&mut values)
+    });
+    Some(Coverage {
+        rows: with_sigma.len(),
+        velocity_within_1_sigma: within(1.0, &velocity_error, true),
+        velocity_within_2_sigma: within(2.0, &velocity_error, true),
+        position_within_1_sigma: within(1.0, &position_error, false),
+        position_within_2_sigma: within(2.0, &position_error, false),
+        median_velocity_sigma_m_per_s: Xyz::from(median_sigma),
+    })
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -308,6 +362,7 @@ pub fn evaluate(
         outlier_rate: fraction(outliers, n),
         track_purity: fraction(dominant, n),
         by_depth,
+        uncertainty: coverage(&associations),
     })
 }
 
@@ -381,6 +436,49 @@ impl fmt::Display for Report {
                 b.z_min, b.z_max, b.rows, e.x, e.y, e.z
             )?;
         }
+        if let Some(c) = &self.uncertainty {
+            let (v1, v2) = (&c.velocity_within_1_sigma, &c.velocity_within_2_sigma);
+            let (p1, p2) = (&c.position_within_1_sigma, &c.position_within_2_sigma);
+            let s = &c.median_velocity_sigma_m_per_s;
+            writeln!(
+                f,
+                "stated uncertainty ({} vectors; Gaussian: 68.3 % within 1 sigma, 95.4 % within 2)",
+                c.rows
+            )?;
+            writeln!(
+                f,
+                "  velocity within 1 sigma  u {}  v {}  w {}",
+                pct(v1.x),
+                pct(v1.y),
+                pct(v1.z)
+            )?;
+            writeln!(
+                f,
+                "  velocity within 2 sigma  u {}  v {}  w {}",
+                pct(v2.x),
+                pct(v2.y),
+                pct(v2.z)
+            )?;
+            writeln!(
+                f,
+                "  position within 1 sigma  x {}  y {}  z {}",
+                pct(p1.x),
+                pct(p1.y),
+                pct(p1.z)
+            )?;
+            writeln!(
+                f,
+                "  position within 2 sigma  x {}  y {}  z {}",
+                pct(p2.x),
+                pct(p2.y),
+                pct(p2.z)
+            )?;
+            writeln!(
+                f,
+                "  median velocity sigma    u {:.5}  v {:.5}  w {:.5} m/s",
+                s.x, s.y, s.z
+            )?;
+        }
         Ok(())
     }
 }
@@ -407,6 +505,7 @@ mod tests {
             track_id,
             position: Point3::new(x, 0.0, 1.0),
             velocity: Vector3::new(u, 0.0, 0.0),
+            sigma: None,
         }
     }
 

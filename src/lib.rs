@@ -15,6 +15,7 @@
 //!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity (window and order
 //!     chosen per track and component from its residuals, `fit_adaptive`)
 //!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
+//!   - [`ptv::field`]: vectors binned on a world-anchored grid (the mean-flow field).
 //! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
 //! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
 //!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
@@ -23,7 +24,8 @@
 //! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
 //! - [`eval`]: scores velocities against truth.
 //! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
-//!   TOML config), read and written with errors that name file, line and field.
+//!   TOML config), read and written with errors that name file, line and field; [`vtk`] writes
+//!   tracks and fields for ParaView.
 //! - [`offline`]: the offline commands' work (`synth`, `process`, `demo`), shared by the binary
 //!   and the tests.
 //! - [`protocol`]: the live wire protocol (`protocol/README.md`): JSON control messages, binary
@@ -70,3 +72,4 @@ pub mod tables;
 pub mod tls;
 #[cfg(feature = "service")]
 pub mod video;
+pub mod vtk;

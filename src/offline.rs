@@ -461,7 +461,7 @@ pub fn process_recording(
         rerun,
     } = sinks;
     let tracks_error = io_error(tracks_path);
-    writeln!(tracks, "{}", tables::TRACKS_HEADER).map_err(io_error(tracks_path))?;
+    writeln!(tracks, "{}", tables::TRACKS_HEADER_WITH_SIGMA).map_err(io_error(tracks_path))?;
     if let Some(p) = points.as_mut() {
         writeln!(p.writer, "{}", tables::POINTS_HEADER).map_err(io_error(p.path))?;
     }

@@ -22,6 +22,11 @@ pub const BATCH_HEADER_BYTES: usize = 40;
 pub const BATCH_RECORD_BYTES: usize = 40;
 const FRAME_FLAG_POSE: u16 = 1;
 const BATCH_FLAG_WORLD: u8 = 1;
+/// Header flag: `count` blocks of [`BATCH_SIGMA_BYTES`] follow the records (asked for with
+/// `"uncertainty": true` in `hello` or `subscribe`).
+const BATCH_FLAG_SIGMAS: u8 = 2;
+/// Per vector: the 1-sigma errors of u, v and w, 3 x f32, m/s.
+pub const BATCH_SIGMA_BYTES: usize = 12;
 const VECTOR_FLAG_REFINED: u16 = 1;
 const VECTOR_FLAG_WORLD: u16 = 2;
 
@@ -206,6 +211,9 @@ pub struct Hello {
     /// their defaults, unknown keys are refused.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub config: Option<PipelineConfig>,
+    /// Vector batches carry each vector's 1-sigma velocity errors after the records.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub uncertainty: bool,
 }
 
 /// Messages a headset sends as text.
@@ -227,9 +235,16 @@ pub enum ViewerMessage {
         session: String,
         #[serde(default = "default_viewer_convention")]
         convention: Convention,
+        /// Batches carry each vector's 1-sigma velocity errors after the records.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        uncertainty: bool,
     },
     Unsubscribe {},
     List {},
+    /// Empties a live session's mean-flow field (`"*"`: every live session's).
+    ResetField {
+        session: String,
+    },
     /// Answered at once by a `pong` with the same `id`: a browser cannot see WebSocket pings,
     /// and needs the round trip to estimate latency.
     Ping {
@@ -369,6 +384,15 @@ pub enum ServerMessage {
     Subscribed {
         session: String,
         convention: Convention,
+        /// Present (true) when the viewer asked for uncertainties.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        uncertainty: bool,
+    },
+    /// A session's mean-flow field (`protocol/README.md`, "field").
+    Field(Box<FieldMessage>),
+    /// The answer to `reset_field`: these sessions' fields were emptied.
+    FieldReset {
+        sessions: Vec<String>,
     },
     Unsubscribed,
     Pong {
@@ -400,6 +424,68 @@ impl ServerMessage {
         // Plain data with string keys: serialisation cannot fail.
         serde_json::to_string(self)
             .unwrap_or_else(|e| format!(r#"{{"type":"error","code":"internal","message":"{e}"}}"#))
+    }
+}
+
+/// Columns of each row of a `field` message's `cells`, as in `field.csv`.
+pub const FIELD_COLUMNS: [&str; 14] = [
+    "x", "y", "z", "n", "u", "v", "w", "std_u", "std_v", "std_w", "sem_u", "sem_v", "sem_w",
+    "tracks",
+];
+
+/// A session's mean-flow field as viewers receive it, in their convention.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldMessage {
+    pub session: String,
+    pub convention: Convention,
+    /// The newest frame whose vectors are in the field.
+    pub frame_index: u64,
+    pub t_s: f64,
+    /// The cells' side, metres.
+    pub cell_m: f64,
+    /// Samples older than this are forgotten; absent: the field keeps the whole session.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window_s: Option<f64>,
+    /// Vectors added since the session began or the field was last reset.
+    pub samples: u64,
+    /// The field's cells number more than `cells` holds (the most sampled are sent).
+    pub truncated: bool,
+    pub columns: Vec<String>,
+    /// One row per cell, in `columns` order.
+    pub cells: Vec<[f64; 14]>,
+}
+
+impl FieldMessage {
+    /// `cells` (in the engine's OpenCV world frame) as rows in `convention`: positions and
+    /// mean velocities flipped, spreads unsigned.
+    pub fn rows(
+        cells: &[crate::ptv::field::CellSummary],
+        convention: Convention,
+    ) -> Vec<[f64; 14]> {
+        cells
+            .iter()
+            .map(|c| {
+                let p = convention.flip(&c.centre.coords);
+                let m = convention.flip(&c.mean);
+                [
+                    p.x,
+                    p.y,
+                    p.z,
+                    c.samples as f64,
+                    m.x,
+                    m.y,
+                    m.z,
+                    c.std.x,
+                    c.std.y,
+                    c.std.z,
+                    c.sem.x,
+                    c.sem.y,
+                    c.sem.z,
+                    c.tracks as f64,
+                ]
+            })
+            .collect()
     }
 }
 
@@ -494,7 +580,7 @@ pub fn parse_text<T: serde::de::DeserializeOwned>(
 }
 
 pub const HEADSET_TYPES: &[&str] = &["hello", "bye"];
-pub const VIEWER_TYPES: &[&str] = &["subscribe", "unsubscribe", "list", "ping"];
+pub const VIEWER_TYPES: &[&str] = &["subscribe", "unsubscribe", "list", "ping", "reset_field"];
 
 /// A decoded frame message; images borrow the message buffer.
 #[derive(Debug, Clone, PartialEq)]
@@ -692,14 +778,24 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// The batch as protocol 1's first layout gives it: header and records.
     pub fn encode(&self, convention: Convention) -> Vec<u8> {
-        let mut b =
-            Vec::with_capacity(BATCH_HEADER_BYTES + BATCH_RECORD_BYTES * self.vectors.len());
+        self.encode_with(convention, false)
+    }
+
+    /// With `sigmas`, each vector's velocity errors follow the records (header flag bit 1).
+    pub fn encode_with(&self, convention: Convention, sigmas: bool) -> Vec<u8> {
+        let per_vector = BATCH_RECORD_BYTES + if sigmas { BATCH_SIGMA_BYTES } else { 0 };
+        let mut b = Vec::with_capacity(BATCH_HEADER_BYTES + per_vector * self.vectors.len());
         b.extend_from_slice(&BATCH_MAGIC);
         b.push(PROTOCOL_VERSION as u8);
         b.push(self.kind.code());
         b.push(convention.code());
-        b.push(if self.world { BATCH_FLAG_WORLD } else { 0 });
+        let mut header_flags = if self.world { BATCH_FLAG_WORLD } else { 0 };
+        if sigmas {
+            header_flags |= BATCH_FLAG_SIGMAS;
+        }
+        b.push(header_flags);
         b.extend_from_slice(&self.session_number.to_le_bytes());
         // A batch never holds more than u32::MAX vectors: the pipeline makes one per track.
         let count = u32::try_from(self.vectors.len()).unwrap_or(u32::MAX);
@@ -726,6 +822,14 @@ impl Batch {
             b.extend_from_slice(&flags.to_le_bytes());
             b.extend_from_slice(&0u16.to_le_bytes());
         }
+        if sigmas {
+            // A convention only flips axes: a spread keeps its value.
+            for v in self.vectors.iter().take(count as usize) {
+                for s in v.velocity_sigma.iter() {
+                    b.extend_from_slice(&(*s as f32).to_le_bytes());
+                }
+            }
+        }
         b
     }
 }
@@ -738,6 +842,8 @@ pub struct WireVector {
     pub velocity_m_per_s: [f32; 3],
     pub rms_residual_m: f32,
     pub flags: u16,
+    /// 1-sigma velocity errors, m/s, where the batch carries them.
+    pub velocity_sigma: Option<[f32; 3]>,
 }
 
 impl WireVector {
@@ -780,8 +886,10 @@ pub fn decode_batch(b: &[u8]) -> Result<DecodedBatch, ProtocolError> {
     let convention = Convention::from_code(b[6])
         .ok_or_else(|| bad_frame(format!("unknown convention code {}", b[6])))?;
     let count = read_u32(b, 12) as usize;
+    let sigmas = b[7] & BATCH_FLAG_SIGMAS != 0;
+    let per_vector = BATCH_RECORD_BYTES + if sigmas { BATCH_SIGMA_BYTES } else { 0 };
     let expected = count
-        .checked_mul(BATCH_RECORD_BYTES)
+        .checked_mul(per_vector)
         .and_then(|n| n.checked_add(BATCH_HEADER_BYTES));
     if expected != Some(b.len()) {
         return Err(bad_frame(format!(
@@ -798,6 +906,11 @@ pub fn decode_batch(b: &[u8]) -> Result<DecodedBatch, ProtocolError> {
                 velocity_m_per_s: [0, 1, 2].map(|k| read_f32(b, at + 20 + 4 * k)),
                 rms_residual_m: read_f32(b, at + 32),
                 flags: read_u16(b, at + 36),
+                velocity_sigma: sigmas.then(|| {
+                    let at =
+                        BATCH_HEADER_BYTES + count * BATCH_RECORD_BYTES + i * BATCH_SIGMA_BYTES;
+                    [0, 1, 2].map(|k| read_f32(b, at + 4 * k))
+                }),
             }
         })
         .collect();
@@ -894,6 +1007,8 @@ mod tests {
             position_in_world: Point3::new(0.1, 0.2, 1.5),
             velocity_in_world: Vector3::new(0.01, -0.02, 0.03),
             rms_residual_m: 1e-4,
+            velocity_sigma: Vector3::new(1e-3, 2e-3, 5e-3),
+            position_sigma: Vector3::new(1e-4, 1e-4, 5e-4),
         };
         let batch = Batch {
             kind: BatchKind::Refined,

@@ -12,7 +12,10 @@
 //!   `.../image` (every Nth frame), `.../detections` (2D centroids, radius D/2)
 //! - `world/points`: matched particles; `world/tracks`: recent track histories
 //! - `world/vectors`: refined velocity arrows, logged at the frame they describe;
-//!   `world/vectors_live`: causal arrows; both coloured by speed (see `legend`)
+//!   `world/vectors_live`: causal arrows; both coloured by speed (see `legend`), each labelled
+//!   (labels hidden; shown on hover) with its 1-sigma velocity errors
+//! - `world/field`: the mean-flow field, an arrow per grid cell at its centre (mean velocity,
+//!   coloured by speed; cells of fewer than 20 samples faded), logged as it updates
 //! - `plots/*`: detections per camera, matches, tracks, vectors, processing and latency times
 //! - `legend`: the speed colour map and arrow scale, as text
 //!
@@ -28,6 +31,7 @@ use nalgebra::{Isometry3, Point3};
 use rerun::RecordingStream;
 
 use crate::geometry::{CameraModel, StereoRig};
+use crate::ptv::field::CellSummary;
 use crate::ptv::{Detection, FrameOutput, FrameStats, MatchedPoint, VelocityVector};
 
 /// Where a run is logged.
@@ -184,6 +188,17 @@ pub struct FrameLog {
     pub images: Option<ImagePair>,
 }
 
+/// What the logging thread is handed.
+enum Entry {
+    Frame(Box<FrameLog>),
+    /// The mean-flow field's cells (world frame) as of this frame.
+    Field {
+        frame_index: u64,
+        t_s: f64,
+        cells: Vec<CellSummary>,
+    },
+}
+
 impl FrameLog {
     /// Everything but timing and images, copied from a pipeline output.
     pub fn from_output(output: &FrameOutput, world_from_rig: Option<Isometry3<f64>>) -> Self {
@@ -215,10 +230,13 @@ pub struct RerunSummary {
     pub errors: u64,
 }
 
+/// Field cells with fewer samples than this are drawn faded: their mean is still noisy.
+pub const FIELD_FULL_SAMPLES: usize = 20;
+
 /// A running logger: hand it frames with [`RerunLogger::log`], close it with
 /// [`RerunLogger::finish`] (which completes the `.rrd` files).
 pub struct RerunLogger {
-    frames: Option<SyncSender<FrameLog>>,
+    frames: Option<SyncSender<Entry>>,
     thread: Option<std::thread::JoinHandle<RerunSummary>>,
     dropped: Arc<AtomicU64>,
     images_every: u64,
@@ -267,14 +285,24 @@ impl RerunLogger {
             .map_err(|e| RerunError::Stream(e.to_string()))?;
         let mut scene = Scene::new(rec, options.clone(), rig);
         scene.log_static(rig);
-        let (tx, rx) = sync_channel::<FrameLog>(options.queue_frames.max(1));
+        let (tx, rx) = sync_channel::<Entry>(options.queue_frames.max(1));
         let dropped = Arc::new(AtomicU64::new(0));
         let dropped_in_thread = Arc::clone(&dropped);
         let thread = std::thread::Builder::new()
             .name("rerun".into())
             .spawn(move || {
-                for frame in rx {
-                    scene.log_frame(&frame);
+                for entry in rx {
+                    match entry {
+                        Entry::Frame(frame) => scene.log_frame(&frame),
+                        Entry::Field {
+                            frame_index,
+                            t_s,
+                            cells,
+                        } => {
+                            scene.set_time(frame_index, t_s);
+                            scene.log_field(&cells);
+                        }
+                    }
                 }
                 scene.finish(dropped_in_thread.load(Ordering::Relaxed))
             })
@@ -294,18 +322,41 @@ impl RerunLogger {
 
     /// Queues a frame, waiting for room: offline runs log every frame.
     pub fn log_all(&self, frame: FrameLog) {
+        self.send_waiting(Entry::Frame(Box::new(frame)));
+    }
+
+    fn send_waiting(&self, entry: Entry) {
         if let Some(tx) = &self.frames {
-            let _ = tx.send(frame);
+            let _ = tx.send(entry);
         }
     }
 
     /// Queues a frame; never waits (live sessions). A frame the logging thread has no room for
     /// is dropped.
     pub fn log(&self, frame: FrameLog) {
+        self.send_or_drop(Entry::Frame(Box::new(frame)));
+    }
+
+    /// Logs the mean-flow field as of `frame_index` (`world/field`); `wait`: for room in the
+    /// queue (offline), else dropped when the logging thread is behind (live).
+    pub fn log_field(&self, frame_index: u64, t_s: f64, cells: Vec<CellSummary>, wait: bool) {
+        let entry = Entry::Field {
+            frame_index,
+            t_s,
+            cells,
+        };
+        if wait {
+            self.send_waiting(entry);
+        } else {
+            self.send_or_drop(entry);
+        }
+    }
+
+    fn send_or_drop(&self, entry: Entry) {
         let Some(tx) = &self.frames else {
             return;
         };
-        match tx.try_send(frame) {
+        match tx.try_send(entry) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) => {
                 if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
@@ -486,8 +537,11 @@ impl Scene {
             "## mrptv\n\nArrows: velocity; length = velocity x {} s.\n\nColour = speed, \
              0 m/s (dark purple) -> {:.3} m/s (yellow), through blue and green; faster is \
              yellow too.\n\n`world/vectors`: refined (centred) estimates, at the frame they \
-             describe; `world/vectors_live`: causal estimates of the newest frame.",
-            self.options.arrow_seconds, speed_max
+             describe; `world/vectors_live`: causal estimates of the newest frame; hover an \
+             arrow for its 1-sigma velocity errors (u, v, w).\n\n`world/field`: the mean-flow \
+             field, one arrow per grid cell at its centre, the mean of the vectors measured in \
+             it; cells with fewer than {} samples are faded.",
+            self.options.arrow_seconds, speed_max, FIELD_FULL_SAMPLES
         );
         let r = self.rec.log_static(
             "legend",
@@ -520,6 +574,39 @@ impl Scene {
             let [r, g, b] = speed_color(v.velocity_in_world.norm(), max);
             rerun::Color::from_rgb(r, g, b)
         }))
+        .with_labels(vectors.iter().map(|v| {
+            let s = v.velocity_sigma;
+            format!("sigma u {:.4} v {:.4} w {:.4} m/s", s.x, s.y, s.z)
+        }))
+        .with_show_labels(false)
+    }
+
+    fn log_field(&mut self, cells: &[CellSummary]) {
+        let max = self.speed_max.unwrap_or(1.0);
+        let scale = self.options.arrow_seconds;
+        let arrows = rerun::Arrows3D::from_vectors(cells.iter().map(|c| {
+            let d = c.mean * scale;
+            [d.x as f32, d.y as f32, d.z as f32]
+        }))
+        .with_origins(cells.iter().map(|c| f32x3(&c.centre)))
+        .with_colors(cells.iter().map(|c| {
+            let [r, g, b] = speed_color(c.mean.norm(), max);
+            let alpha = if c.samples >= FIELD_FULL_SAMPLES {
+                255
+            } else {
+                70
+            };
+            rerun::Color::from_unmultiplied_rgba(r, g, b, alpha)
+        }))
+        .with_labels(cells.iter().map(|c| {
+            format!(
+                "n {} tracks {}; std u {:.4} v {:.4} w {:.4} m/s",
+                c.samples, c.tracks, c.std.x, c.std.y, c.std.z
+            )
+        }))
+        .with_show_labels(false);
+        let r = self.rec.log("world/field", &arrows);
+        self.check(r);
     }
 
     fn log_frame(&mut self, f: &FrameLog) {

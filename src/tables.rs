@@ -9,13 +9,20 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::isometry_to_row_major;
+use crate::ptv::field::CellSummary;
 use crate::ptv::{MatchedPoint, VelocityVector};
 use crate::synth::TruthRow;
 
 pub const FRAMES_HEADER: &str = "index,t_s";
 pub const TRUTH_HEADER: &str = "frame,t_s,pid,x,y,z,u,v,w";
 pub const TRACKS_HEADER: &str = "frame,t_s,track_id,x,y,z,u,v,w";
+/// `tracks.csv` as written since vectors carry their uncertainty: `TRACKS_HEADER` and the 1-sigma
+/// errors of velocity (m/s) and position (m) appended.
+pub const TRACKS_HEADER_WITH_SIGMA: &str = "frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz";
 pub const POINTS_HEADER: &str = "frame,t_s,x,y,z,xl,yl,xr,yr";
+/// `field.csv`: per grid cell its centre (world frame, m), sample count, mean velocity (m/s),
+/// standard deviation and standard error of the mean per component, and distinct tracks.
+pub const FIELD_HEADER: &str = "x,y,z,n,u,v,w,std_u,std_v,std_w,sem_u,sem_v,sem_w,tracks";
 
 /// `frames.csv` header with the 16 optional pose columns.
 pub fn frames_header_with_pose() -> String {
@@ -185,6 +192,8 @@ pub struct TrackRow {
     pub track_id: u64,
     pub position: Point3<f64>,
     pub velocity: Vector3<f64>,
+    /// 1-sigma errors (velocity, position); `None` in files written before vectors carried them.
+    pub sigma: Option<(Vector3<f64>, Vector3<f64>)>,
 }
 
 impl From<&VelocityVector> for TrackRow {
@@ -195,12 +204,24 @@ impl From<&VelocityVector> for TrackRow {
             track_id: v.track_id,
             position: v.position_in_world,
             velocity: v.velocity_in_world,
+            sigma: Some((v.velocity_sigma, v.position_sigma)),
         }
     }
 }
 
+/// Reads `tracks.csv` with or without the uncertainty columns.
 pub fn read_tracks(path: &Path) -> Result<Vec<TrackRow>, TableError> {
-    let (_, rows) = read_numeric(path, &[TRACKS_HEADER])?;
+    let (_, rows) = read_numeric(path, &[TRACKS_HEADER_WITH_SIGMA, TRACKS_HEADER])?;
+    track_rows(path, &rows)
+}
+
+/// [`read_tracks`] of text from anywhere; `path` names it in errors.
+pub fn parse_tracks(path: &Path, text: impl BufRead) -> Result<Vec<TrackRow>, TableError> {
+    let (_, rows) = parse_numeric(path, text, &[TRACKS_HEADER_WITH_SIGMA, TRACKS_HEADER])?;
+    track_rows(path, &rows)
+}
+
+fn track_rows(path: &Path, rows: &[Row]) -> Result<Vec<TrackRow>, TableError> {
     rows.iter()
         .map(|r| {
             Ok(TrackRow {
@@ -209,6 +230,8 @@ pub fn read_tracks(path: &Path) -> Result<Vec<TrackRow>, TableError> {
                 track_id: whole(path, r, 2, "track_id")?,
                 position: point(&r.values[3..6]),
                 velocity: vector(&r.values[6..9]),
+                sigma: (r.values.len() >= 15)
+                    .then(|| (vector(&r.values[9..12]), vector(&r.values[12..15]))),
             })
         })
         .collect()
@@ -225,12 +248,37 @@ pub fn write_truth_row(out: &mut (impl Write + ?Sized), r: &TruthRow) -> std::io
     )
 }
 
+/// A `tracks.csv` row under `TRACKS_HEADER_WITH_SIGMA`.
 pub fn write_track_row(out: &mut (impl Write + ?Sized), v: &VelocityVector) -> std::io::Result<()> {
     let (p, u) = (v.position_in_world, v.velocity_in_world);
+    let (su, sp) = (v.velocity_sigma, v.position_sigma);
     writeln!(
         out,
-        "{},{},{},{},{},{},{},{},{}",
-        v.frame_index, v.t_s, v.track_id, p.x, p.y, p.z, u.x, u.y, u.z
+        "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        v.frame_index,
+        v.t_s,
+        v.track_id,
+        p.x,
+        p.y,
+        p.z,
+        u.x,
+        u.y,
+        u.z,
+        su.x,
+        su.y,
+        su.z,
+        sp.x,
+        sp.y,
+        sp.z
+    )
+}
+
+pub fn write_field_row(out: &mut (impl Write + ?Sized), c: &CellSummary) -> std::io::Result<()> {
+    let (p, m, s, e) = (c.centre, c.mean, c.std, c.sem);
+    writeln!(
+        out,
+        "{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        p.x, p.y, p.z, c.samples, m.x, m.y, m.z, s.x, s.y, s.z, e.x, e.y, e.z, c.tracks
     )
 }
 

@@ -73,7 +73,8 @@ fn synth_process_eval_round_trip_is_deterministic() {
     assert_eq!(a, b, "same recording and config, byte-identical tracks");
     assert_eq!(fs::read(&p1).expect("p1"), fs::read(&p2).expect("p2"));
     let tracks = String::from_utf8(a).expect("utf8");
-    assert!(tracks.starts_with("frame,t_s,track_id,x,y,z,u,v,w\n"));
+    // The first nine columns keep their names and order; the uncertainties follow.
+    assert!(tracks.starts_with("frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz\n"));
     assert!(tracks.lines().count() > 100, "vectors written");
     let points = fs::read_to_string(&p1).expect("points");
     assert!(points.starts_with("frame,t_s,x,y,z,xl,yl,xr,yr\n"));
@@ -90,6 +91,132 @@ fn synth_process_eval_round_trip_is_deterministic() {
     assert!(report["association_rate"].as_f64().expect("number") > 0.95);
     let text = ok(&["eval", s(&rec.join("truth.csv")), s(&t1)]);
     assert!(text.contains("ghost rate") && text.contains("by depth"));
+}
+
+/// `--field` bins the vectors of `--out` on a world grid: one row per cell, counts adding up to
+/// the vectors, centres on the grid; `.vtu` and `.vtk` outputs are read back by a real VTK
+/// reader (Python's meshio) with the same numbers.
+#[test]
+fn process_writes_the_field_and_vtk_files_paraview_reads() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let rec = synth(dir.path(), "flume", "60");
+    let (tracks, field) = (dir.path().join("t.csv"), dir.path().join("field.csv"));
+    let said = mrptv(&[
+        "process",
+        s(&rec),
+        "--out",
+        s(&tracks),
+        "--field",
+        s(&field),
+        "--field-cell",
+        "0.05",
+    ]);
+    assert!(said.status.success());
+    let stderr = String::from_utf8_lossy(&said.stderr);
+    assert!(
+        stderr.contains("field: ") && stderr.contains("cells of 0.05 m"),
+        "{stderr}"
+    );
+    let rows = fs::read_to_string(&tracks).expect("tracks").lines().count() - 1;
+    let text = fs::read_to_string(&field).expect("field");
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("x,y,z,n,u,v,w,std_u,std_v,std_w,sem_u,sem_v,sem_w,tracks")
+    );
+    let cells: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|v| v.parse().expect("number")).collect())
+        .collect();
+    assert!(cells.len() > 5, "{} cells", cells.len());
+    assert_eq!(cells.iter().map(|c| c[3]).sum::<f64>() as usize, rows);
+    for c in &cells {
+        for centre in &c[0..3] {
+            let index = centre / 0.05 - 0.5;
+            assert!((index - index.round()).abs() < 1e-9, "centre {centre}");
+        }
+        assert!(
+            c[13] >= 1.0 && c[13] <= c[3],
+            "tracks {} of {} samples",
+            c[13],
+            c[3]
+        );
+    }
+
+    // The same run as VTK: read back by meshio, values equal to the CSVs'.
+    for ext in ["vtu", "vtk"] {
+        let (vtk_tracks, vtk_field) = (
+            dir.path().join(format!("t.{ext}")),
+            dir.path().join(format!("field.{ext}")),
+        );
+        ok(&[
+            "process",
+            s(&rec),
+            "--out",
+            s(&vtk_tracks),
+            "--field",
+            s(&vtk_field),
+            "--field-cell",
+            "0.05",
+        ]);
+        let check = std::process::Command::new("python3")
+            .arg("-c")
+            .arg(
+                r#"
+import sys, csv, meshio, numpy as np
+def rows(path):
+    with open(path) as f:
+        r = csv.reader(f); header = next(r)
+        return header, np.array([[float(v) for v in row] for row in r])
+th, t = rows(sys.argv[1]); fh, f = rows(sys.argv[2])
+m = meshio.read(sys.argv[3])
+assert len(m.points) == len(t), (len(m.points), len(t))
+assert np.array_equal(m.points, t[:, 3:6])
+assert np.array_equal(m.point_data["velocity"], t[:, 6:9])
+assert np.array_equal(m.point_data["velocity_sigma"], t[:, 9:12])
+assert np.array_equal(np.ravel(m.point_data["track_id"]), t[:, 2])
+g = meshio.read(sys.argv[4])
+assert np.array_equal(g.points, f[:, 0:3])
+assert np.array_equal(g.point_data["velocity"], f[:, 4:7])
+assert np.array_equal(np.ravel(g.point_data["n"]), f[:, 3])
+assert np.array_equal(g.point_data["std"], f[:, 7:10])
+print("read back", len(m.points), "vectors and", len(g.points), "cells")
+"#,
+            )
+            .args([&tracks, &field, &vtk_tracks, &vtk_field])
+            .output()
+            .expect("python3 runs (pip install -r tests/python/requirements.txt)");
+        assert!(
+            check.status.success(),
+            "{ext}: {}{}",
+            String::from_utf8_lossy(&check.stdout),
+            String::from_utf8_lossy(&check.stderr)
+        );
+    }
+
+    // A tracks file written before the uncertainty columns is still read.
+    let old = dir.path().join("old.csv");
+    let nine: Vec<String> = fs::read_to_string(&tracks)
+        .expect("tracks")
+        .lines()
+        .map(|l| l.split(',').take(9).collect::<Vec<_>>().join(","))
+        .collect();
+    fs::write(&old, nine.join("\n") + "\n").expect("write");
+    let report = ok(&["eval", s(&rec.join("truth.csv")), s(&old)]);
+    assert!(report.contains("ghost rate") && !report.contains("stated uncertainty"));
+    let report = ok(&["eval", s(&rec.join("truth.csv")), s(&tracks)]);
+    assert!(report.contains("velocity within 2 sigma"), "{report}");
+
+    let e = fails(&[
+        "process",
+        s(&rec),
+        "--out",
+        s(&tracks),
+        "--field",
+        s(&field),
+        "--field-cell",
+        "0",
+    ]);
+    assert!(e.contains("field cell size 0 m"), "{e}");
 }
 
 #[test]
@@ -312,7 +439,7 @@ fn bad_inputs_get_clear_errors() {
         s(&rec.join("frames.csv")),
     ]);
     assert!(
-        e.contains("frames.csv line 1: header 'index,t_s' is not 'frame,t_s,track_id,x,y,z,u,v,w'"),
+        e.contains("frames.csv line 1: header 'index,t_s' is not 'frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz' or 'frame,t_s,track_id,x,y,z,u,v,w'"),
         "{e}"
     );
 

@@ -8,8 +8,9 @@ use std::path::Path;
 
 use mrptv::protocol::{
     decode_batch, decode_frame, encode_frame, parse_text, Batch, BatchKind, Convention, Counters,
-    Encoding, ErrorCode, FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage,
-    SessionDescription, SessionInfo, ViewerMessage, HEADSET_TYPES, PROTOCOL_VERSION, VIEWER_TYPES,
+    Encoding, ErrorCode, FieldMessage, FrameMessage, HeadsetMessage, Hello, ImageFormat,
+    ServerMessage, SessionDescription, SessionInfo, ViewerMessage, FIELD_COLUMNS, HEADSET_TYPES,
+    PROTOCOL_VERSION, VIEWER_TYPES,
 };
 use mrptv::ptv::{PipelineConfig, VelocityVector};
 use mrptv::recording::encode_gray_png;
@@ -58,6 +59,8 @@ fn vectors() -> Vec<VelocityVector> {
             position_in_world: Point3::new(0.5, 0.25, 1.5),
             velocity_in_world: Vector3::new(0.125, -0.0625, 0.03125),
             rms_residual_m: 0.0005,
+            velocity_sigma: Vector3::new(0.001, 0.002, 0.0078125),
+            position_sigma: Vector3::new(0.0001, 0.0001, 0.0005),
         },
         VelocityVector {
             frame_index: 42,
@@ -66,6 +69,8 @@ fn vectors() -> Vec<VelocityVector> {
             position_in_world: Point3::new(-0.25, 0.0, 0.75),
             velocity_in_world: Vector3::new(0.0, 0.5, -0.25),
             rms_residual_m: 0.00025,
+            velocity_sigma: Vector3::new(0.0005, 0.0005, 0.00390625),
+            position_sigma: Vector3::new(0.00005, 0.00005, 0.00025),
         },
     ]
 }
@@ -88,6 +93,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
             },
             convention,
             config,
+            uncertainty: false,
         }))
     };
     g.insert(
@@ -112,6 +118,21 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         json(&ViewerMessage::Subscribe {
             session: "s1".into(),
             convention: Convention::WebXr,
+            uncertainty: false,
+        }),
+    );
+    g.insert(
+        "viewer-subscribe-uncertainty.json",
+        json(&ViewerMessage::Subscribe {
+            session: "s1".into(),
+            convention: Convention::WebXr,
+            uncertainty: true,
+        }),
+    );
+    g.insert(
+        "viewer-reset_field.json",
+        json(&ViewerMessage::ResetField {
+            session: "s1".into(),
         }),
     );
     g.insert(
@@ -119,6 +140,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         json(&ViewerMessage::Subscribe {
             session: "*".into(),
             convention: Convention::WebXr,
+            uncertainty: false,
         }),
     );
     g.insert(
@@ -201,7 +223,38 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         json(&ServerMessage::Subscribed {
             session: "s1".into(),
             convention: Convention::WebXr,
+            uncertainty: false,
         }),
+    );
+    g.insert(
+        "server-field_reset.json",
+        json(&ServerMessage::FieldReset {
+            sessions: vec!["s1".into()],
+        }),
+    );
+    g.insert(
+        "server-field.json",
+        json(&ServerMessage::Field(Box::new(FieldMessage {
+            session: "s1".into(),
+            convention: Convention::WebXr,
+            frame_index: 295,
+            t_s: 9.8,
+            cell_m: 0.05,
+            window_s: None,
+            samples: 5230,
+            truncated: false,
+            columns: FIELD_COLUMNS.iter().map(|c| c.to_string()).collect(),
+            cells: vec![
+                [
+                    0.025, -0.125, -0.475, 42.0, 0.25, 0.0, -0.125, 0.01, 0.005, 0.02, 0.003,
+                    0.0015, 0.006, 11.0,
+                ],
+                [
+                    0.075, -0.125, -0.475, 7.0, 0.25, 0.0625, -0.125, 0.02, 0.01, 0.04, 0.01,
+                    0.005, 0.02, 4.0,
+                ],
+            ],
+        }))),
     );
     g.insert(
         "server-unsubscribed.json",
@@ -292,6 +345,10 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
     g.insert(
         "batch-refined-opencv.bin",
         batch(BatchKind::Refined, false, vectors()).encode(Convention::OpenCv),
+    );
+    g.insert(
+        "batch-refined-sigmas-webxr.bin",
+        batch(BatchKind::Refined, true, vectors()).encode_with(Convention::WebXr, true),
     );
     g.insert(
         "batch-causal-empty-webxr.bin",
@@ -388,6 +445,13 @@ fn every_golden_file_decodes() {
                 assert_eq!(wire.position_m, [p.x as f32, p.y as f32, p.z as f32]);
                 assert_eq!(wire.velocity_m_per_s, [v.x as f32, v.y as f32, v.z as f32]);
                 assert_eq!(wire.refined(), b.kind == BatchKind::Refined);
+                let s = truth.velocity_sigma;
+                let sigmas = [s.x as f32, s.y as f32, s.z as f32];
+                assert_eq!(
+                    wire.velocity_sigma,
+                    name.contains("sigmas").then_some(sigmas),
+                    "{name}"
+                );
             }
         }
     }

@@ -97,6 +97,8 @@ fn process_writes_an_rrd_that_rerun_reads_with_every_entity() {
         .arg(tmp.path().join("rec"))
         .arg("--out")
         .arg(tmp.path().join("tracks.csv"))
+        .arg("--field")
+        .arg(tmp.path().join("field.csv"))
         .arg("--rerun")
         .arg(format!("file:{}", rrd.display()))
         .args(["--rerun-images-every", "10"])
@@ -138,6 +140,8 @@ fn process_writes_an_rrd_that_rerun_reads_with_every_entity() {
         ("/world/vectors@Arrows3D", n - m),
         ("/world/rig/left/image@Image", 3),
         ("/world/rig/right/image@Image", 3),
+        // The mean-flow field of --field, once, at the last frame with vectors.
+        ("/world/field@Arrows3D", 1),
     ] {
         assert_eq!(rows(&entities, entity), expected, "{entity}");
     }
@@ -192,6 +196,12 @@ async fn serve_logs_each_session_to_its_own_rrd() {
                 images_every: 5,
                 ..Default::default()
             }),
+            // The field on every frame with refined vectors.
+            field: mrptv::server::FieldOptions {
+                cell_m: Some(0.05),
+                interval: Duration::ZERO,
+                ..Default::default()
+            },
             ..Default::default()
         },
         async {
@@ -243,6 +253,12 @@ async fn serve_logs_each_session_to_its_own_rrd() {
             frames as u64
         );
         assert_eq!(rows(&entities, "/world/rig/left/image@Image"), 4);
+        let m = PipelineConfig::default().velocity.half_window_frames as u64;
+        assert_eq!(
+            rows(&entities, "/world/field@Arrows3D"),
+            frames as u64 - m,
+            "the live field, logged with each refined frame"
+        );
     }
 }
 

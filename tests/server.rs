@@ -694,6 +694,7 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
         if let ServerMessage::Subscribed {
             session,
             convention,
+            ..
         } = next_text(&mut viewer).await
         {
             assert_eq!(
@@ -764,6 +765,180 @@ async fn viewers_list_subscribe_by_id_and_unsubscribe() {
     server.stop().await;
     let report = streaming.await.expect("replay");
     assert_eq!(report.bye_reason.as_deref(), Some("server shutting down"));
+}
+
+/// A viewer asking for uncertainties gets each vector's velocity errors (those of `tracks.csv`,
+/// to float32 rounding), and the session's mean-flow field as it accumulates; `reset_field`
+/// empties it. A headset asking for them in `hello` gets them in its own batches.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewers_get_uncertainties_and_the_mean_flow_field_and_can_reset_it() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, config) = synth(&tmp.path().join("rec"), Scenario::Flume, 240);
+    let offline = offline_tracks(&rec, &config, &tmp.path().join("offline.csv"));
+    let sigma_of: std::collections::HashMap<(u64, u64), [f64; 3]> = offline
+        .iter()
+        .map(|r| {
+            let (sv, _) = r.sigma.expect("tracks carry sigmas");
+            ((r.frame, r.track_id), [sv.x, sv.y, sv.z])
+        })
+        .collect();
+    let options = ServerOptions {
+        field: mrptv::server::FieldOptions {
+            interval: Duration::from_millis(200),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let server = TestServer::start(options).await;
+    let mut viewer = connect(&server.watch()).await;
+    viewer
+        .send(Message::text(
+            r#"{"type":"subscribe","session":"*","convention":"webxr","uncertainty":true}"#,
+        ))
+        .await
+        .expect("subscribes");
+    match next_text(&mut viewer).await {
+        ServerMessage::Sessions { .. } => {}
+        other => panic!("sessions first, got {other:?}"),
+    }
+    assert!(matches!(
+        next_text(&mut viewer).await,
+        ServerMessage::Subscribed {
+            uncertainty: true,
+            ..
+        }
+    ));
+    let streaming = spawn_replay(
+        &rec,
+        ReplayOptions {
+            rate: Rate::Recorded,
+            ..replay_options(server.ingest(), &config)
+        },
+    );
+    let mut compared = 0;
+    // Samples of each field before the reset was answered, and after.
+    let (mut before, mut after) = (Vec::new(), Vec::new());
+    let mut reset_answered = false;
+    while after.len() < 3 {
+        let m = tokio::time::timeout(Duration::from_secs(30), viewer.next())
+            .await
+            .expect("a message within 30 s")
+            .expect("open")
+            .expect("readable");
+        match m {
+            Message::Binary(b) => {
+                let batch = decode_batch(&b).expect("batch");
+                assert_eq!(b[7] & 2, 2, "uncertainty flag set");
+                assert_eq!(b.len(), 40 + 52 * batch.vectors.len());
+                if batch.kind != BatchKind::Refined {
+                    continue;
+                }
+                for v in &batch.vectors {
+                    let sigma = v.velocity_sigma.expect("sigmas");
+                    let truth = sigma_of[&(batch.frame_index, v.track_id)];
+                    for k in 0..3 {
+                        assert_eq!(sigma[k], truth[k] as f32, "sigma of track {}", v.track_id);
+                    }
+                    compared += 1;
+                }
+            }
+            Message::Text(t) => match serde_json::from_str(t.as_str()).expect("JSON") {
+                ServerMessage::Field(field) => {
+                    assert_eq!(field.session, "s1");
+                    assert_eq!(
+                        field.columns[..10].join(","),
+                        "x,y,z,n,u,v,w,std_u,std_v,std_w"
+                    );
+                    assert!(field.cell_m > 0.0 && !field.cells.is_empty() && !field.truncated);
+                    let counted: f64 = field.cells.iter().map(|c| c[3]).sum();
+                    assert_eq!(counted as u64, field.samples, "every sample in one cell");
+                    if reset_answered {
+                        after.push(field.samples);
+                    } else {
+                        if before.is_empty() {
+                            viewer
+                                .send(Message::text(r#"{"type":"reset_field","session":"s1"}"#))
+                                .await
+                                .expect("resets");
+                        }
+                        before.push(field.samples);
+                    }
+                }
+                ServerMessage::FieldReset { sessions } => {
+                    assert_eq!(sessions, vec!["s1".to_string()]);
+                    reset_answered = true;
+                }
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+    assert!(compared > 100, "{compared} vectors' sigmas compared");
+    // The field started again (one field sent before the reset took effect may still come
+    // after its answer): a field of fewer samples than it had grown to, then growing.
+    let grown = before
+        .iter()
+        .copied()
+        .max()
+        .expect("a field before the reset");
+    let restart = after
+        .iter()
+        .position(|&n| n < grown)
+        .unwrap_or_else(|| panic!("no field restarted after the reset: {before:?} then {after:?}"));
+    assert!(
+        after[restart..].windows(2).all(|w| w[0] <= w[1]),
+        "{before:?} then {after:?}"
+    );
+    expect_error(
+        &mut viewer,
+        Message::text(r#"{"type":"reset_field","session":"s9"}"#),
+        ErrorCode::UnknownSession,
+    )
+    .await;
+    streaming.await.expect("replay");
+
+    // A headset asking for them in its hello.
+    let mut headset = connect(&server.ingest()).await;
+    headset
+        .send(hello(&rec, |h| h["uncertainty"] = serde_json::json!(true)))
+        .await
+        .expect("hello");
+    assert!(matches!(
+        next_text(&mut headset).await,
+        ServerMessage::Welcome { .. }
+    ));
+    let mut with_vectors = 0;
+    for (i, entry) in rec.frames.iter().take(40).enumerate() {
+        let (left, right) = rec.load(entry).expect("frame");
+        headset
+            .send(frame(
+                i as u64,
+                entry.t_s,
+                mrptv::protocol::Encoding::Raw8,
+                &left,
+                &right,
+            ))
+            .await
+            .expect("frame");
+        loop {
+            let m = tokio::time::timeout(Duration::from_secs(20), headset.next())
+                .await
+                .expect("answer")
+                .expect("open")
+                .expect("readable");
+            if let Message::Binary(b) = m {
+                let batch = decode_batch(&b).expect("batch");
+                assert_eq!(b[7] & 2, 2, "the headset's batches carry sigmas");
+                with_vectors +=
+                    usize::from(batch.vectors.iter().any(|v| v.velocity_sigma.is_some()));
+                if batch.kind == BatchKind::Causal {
+                    break;
+                }
+            }
+        }
+    }
+    assert!(with_vectors > 10, "{with_vectors} batches with sigmas");
+    server.stop().await;
 }
 
 /// A headset with no config, streaming flow too fast for the published linking box (45-75 px

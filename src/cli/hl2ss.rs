@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 
 use mrptv::client::{self, Rate, ReplayOptions, ReplayReport};
 use mrptv::hl2ss::bridge::{calibrate, BridgeCounters, Hl2ssEndpoints, Hl2ssSource};
-use mrptv::hl2ss::holograms::{self, Painter};
+use mrptv::hl2ss::holograms::{self, HologramContent, Painter};
 use mrptv::hl2ss::VlcCodec;
 use mrptv::protocol::Convention;
 
@@ -43,10 +43,11 @@ pub struct Args {
     /// For wss:// URLs: also trust the certificates in this PEM file.
     #[arg(long, value_name = "PEM")]
     ca_cert: Option<PathBuf>,
-    /// Draw the live vectors in the wearer's view through hl2ss's Unity plugin (its message
-    /// queue must be running: the hl2ss Unity app, not the plain one).
-    #[arg(long)]
-    holograms: bool,
+    /// Draw in the wearer's view through hl2ss's Unity plugin (its message queue must be
+    /// running: the hl2ss Unity app, not the plain one): the live vectors, or with
+    /// `--holograms field` the session's mean-flow field (an arrow per grid cell).
+    #[arg(long, value_name = "WHAT", num_args = 0..=1, default_missing_value = "vectors")]
+    holograms: Option<HologramContent>,
     /// The Unity plugin's message-queue port.
     #[arg(long, default_value_t = holograms::MESSAGE_QUEUE_PORT)]
     mq_port: u16,
@@ -102,7 +103,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let rig = calibrate(&endpoints, args.fit_step)?;
     // Before any frame: a missing Unity plugin is said at once.
-    let painter = if args.holograms {
+    let painter = if args.holograms.is_some() {
         Some(Painter::connect(
             &endpoints.host,
             args.mq_port,
@@ -145,6 +146,7 @@ pub fn run(args: Args) -> Result<()> {
         secret: args.secret.secret,
         ..ReplayOptions::new(args.url.clone())
     };
+    let painter = painter.map(|p| (p, args.holograms.unwrap_or_default()));
     let (report, painted) = stream(source, &options, painter, args.watch_secret)?;
     let report = report.with_context(|| format!("streaming to {}", args.url))?;
     let painted = match painted {
@@ -172,19 +174,20 @@ type Streamed = (
 fn stream(
     source: Hl2ssSource,
     options: &ReplayOptions,
-    painter: Option<Painter>,
+    painter: Option<(Painter, HologramContent)>,
     watch_secret: Option<String>,
 ) -> Result<Streamed> {
     let watch_url = options.url.replace("/v1/ingest", "/v1/watch");
     Ok(runtime()?.block_on(async {
         let (done_tx, done_rx) = tokio::sync::watch::channel(false);
-        let painting = painter.map(|painter| {
+        let painting = painter.map(|(painter, content)| {
             let mut done = done_rx.clone();
             tokio::spawn(holograms::follow_and_paint(
                 watch_url,
                 watch_secret,
                 options.tls.clone(),
                 options.client_name.clone(),
+                content,
                 painter,
                 async move {
                     let _ = done.wait_for(|d| *d).await;

@@ -1,13 +1,17 @@
 //! `mrptv process`: a recording in, velocity vectors (tracks.csv) out.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
 use mrptv::offline::{self, ProcessSinks, Sink};
+use mrptv::ptv::field::{self, CellSummary, FieldGrid, FieldSample};
 use mrptv::ptv::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
+use mrptv::tables::{self, TrackRow};
+use mrptv::vtk::{self, VtkFormat};
 
 use super::args::DepthRange;
 use super::{create_output, method_config, progress_bar, runtime, termination};
@@ -16,9 +20,18 @@ use super::{create_output, method_config, progress_bar, runtime, termination};
 pub struct Args {
     /// Recording directory (rig.json, frames.csv, left/, right/).
     rec: PathBuf,
-    /// Output CSV: frame,t_s,track_id,x,y,z,u,v,w (metres, m/s, world frame).
+    /// Output: tracks.csv (frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz: metres, m/s, world
+    /// frame, then 1-sigma errors), or a VTK file for ParaView when it ends in .vtu or .vtk.
     #[arg(long)]
     out: PathBuf,
+    /// Also write the mean-flow field: the vectors binned on a world-anchored grid, per cell
+    /// x,y,z,n,u,v,w,std_u,std_v,std_w,sem_u,sem_v,sem_w,tracks (CSV; .vtu or .vtk for VTK).
+    #[arg(long, value_name = "FILE")]
+    field: Option<PathBuf>,
+    /// With --field: the grid's cell size, metres [default: a tenth of the measurement
+    /// volume's largest extent, rounded to 1, 2 or 5 times a power of ten].
+    #[arg(long, value_name = "M", requires = "field")]
+    field_cell: Option<f64>,
     /// Also write every stereo-matched particle: frame,t_s,x,y,z,xl,yl,xr,yr.
     #[arg(long)]
     points: Option<PathBuf>,
@@ -45,6 +58,8 @@ pub fn run(args: Args) -> Result<()> {
     let Args {
         rec,
         out,
+        field,
+        field_cell,
         points,
         config,
         method,
@@ -55,7 +70,16 @@ pub fn run(args: Args) -> Result<()> {
     let recording = Recording::open(&rec)?;
     let mut config = load_config(&rec, config.as_deref(), method)?;
     DepthRange::apply(depth_range, &mut config);
-    let mut tracks = create_output(&out)?;
+    if let Some(cell) = field_cell {
+        FieldGrid::new(cell, None)?;
+    }
+    let out_vtk = VtkFormat::of(&out);
+    // A VTK file is written once the vectors are known; the rows gather in memory till then.
+    let mut tracks_file = match out_vtk {
+        Some(_) => None,
+        None => Some(create_output(&out)?),
+    };
+    let mut tracks_text = Vec::new();
     let proxy = start_proxy(&mut rerun)?;
     let logger = if rerun.is_empty() {
         None
@@ -78,7 +102,10 @@ pub fn run(args: Args) -> Result<()> {
         ProcessSinks {
             tracks: Sink {
                 path: &out,
-                writer: &mut tracks,
+                writer: match tracks_file.as_mut() {
+                    Some(file) => file,
+                    None => &mut tracks_text,
+                },
             },
             points: match (points.as_deref(), points_file.as_mut()) {
                 (Some(path), Some(file)) => Some(Sink { path, writer: file }),
@@ -90,6 +117,27 @@ pub fn run(args: Args) -> Result<()> {
     )
     .with_context(|| format!("processing {}", rec.display()))?;
     bar.finish_and_clear();
+    if let Some(mut file) = tracks_file {
+        file.flush()
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    let rows = match (out_vtk, &field) {
+        (None, None) => Vec::new(),
+        (None, Some(_)) => tables::read_tracks(&out)?,
+        (Some(_), _) => tables::parse_tracks(&out, tracks_text.as_slice())?,
+    };
+    if let Some(format) = out_vtk {
+        let mut file = create_output(&out)?;
+        vtk::write_tracks(&mut file, format, &rows)
+            .and_then(|()| Ok(file.flush()?))
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    if let Some(path) = &field {
+        let cells = write_field(path, field_cell, &rows)?;
+        if let (Some(logger), Some(last)) = (&logger, rows.iter().max_by_key(|r| r.frame)) {
+            logger.log_field(last.frame, last.t_s, cells, true);
+        }
+    }
     if let Some(logger) = logger {
         report_rerun(logger, &rerun);
     }
@@ -114,6 +162,50 @@ pub fn run(args: Args) -> Result<()> {
         runtime()?.block_on(termination());
     }
     Ok(())
+}
+
+/// Bins the vectors on a grid of `cell_m` (or the default for their volume) and writes the
+/// field as CSV or VTK, by `path`'s extension.
+fn write_field(path: &Path, cell_m: Option<f64>, rows: &[TrackRow]) -> Result<Vec<CellSummary>> {
+    let positions: Vec<_> = rows.iter().map(|r| r.position).collect();
+    let Some(cell_m) = cell_m.or_else(|| field::default_cell_m(&positions)) else {
+        anyhow::bail!(
+            "no field written to {}: too few vectors to size its grid (give --field-cell)",
+            path.display()
+        );
+    };
+    let mut grid = FieldGrid::new(cell_m, None)?;
+    for r in rows {
+        grid.add(FieldSample {
+            t_s: r.t_s,
+            track_id: r.track_id,
+            position: r.position,
+            velocity: r.velocity,
+        });
+    }
+    let cells: Vec<_> = grid.cells().collect();
+    let mut file = create_output(path)?;
+    let written: Result<()> = match VtkFormat::of(path) {
+        Some(format) => vtk::write_field(&mut file, format, &cells).map_err(Into::into),
+        None => (|| {
+            writeln!(file, "{}", tables::FIELD_HEADER)?;
+            for c in &cells {
+                tables::write_field_row(&mut file, c)?;
+            }
+            Ok(())
+        })(),
+    };
+    written
+        .and_then(|()| Ok(file.flush()?))
+        .with_context(|| format!("writing {}", path.display()))?;
+    eprintln!(
+        "field: {} cells of {} m from {} vectors -> {}",
+        cells.len(),
+        cell_m,
+        rows.len(),
+        path.display()
+    );
+    Ok(cells)
 }
 
 /// Waits for the Rerun logger to drain and says where the log went.

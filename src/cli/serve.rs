@@ -7,9 +7,10 @@ use anyhow::{Context, Result};
 
 use mrptv::client::{self, ReplayOptions, SyntheticSource};
 use mrptv::protocol::Encoding;
+use mrptv::ptv::field::StreamField;
 use mrptv::ptv::PipelineConfig;
 use mrptv::rerun_log::{start_proxy, RerunOptions, RerunSink};
-use mrptv::server::{self, ServerOptions};
+use mrptv::server::{self, FieldOptions, ServerOptions};
 use mrptv::synth::{Scenario, ScenarioSpec};
 use mrptv::tls::ServerTls;
 
@@ -54,6 +55,16 @@ pub struct Args {
     /// With --rerun: log the camera images every N frames (0: never).
     #[arg(long, default_value_t = 0, value_name = "N")]
     rerun_images_every: u64,
+    /// Each session's mean-flow field (`field` messages to viewers): cell size, metres
+    /// [default: a tenth of the volume the session's first 500 vectors span, rounded].
+    #[arg(long, value_name = "M")]
+    field_cell: Option<f64>,
+    /// Forget field samples older than this many seconds [default: keep the whole session].
+    #[arg(long, value_name = "S")]
+    field_window: Option<f64>,
+    /// Seconds between a session's `field` messages, at least.
+    #[arg(long, value_name = "S", default_value_t = 1.0)]
+    field_interval: f64,
     #[command(flatten)]
     tls: TlsArgs,
     #[command(flatten)]
@@ -79,7 +90,19 @@ pub fn run(args: Args) -> Result<()> {
         config
     };
     DepthRange::apply(args.depth_range, &mut config);
+    StreamField::new(args.field_cell, args.field_window)?;
+    anyhow::ensure!(
+        args.field_interval.is_finite() && args.field_interval >= 0.0,
+        "--field-interval {}: must be a non-negative number of seconds",
+        args.field_interval
+    );
     let mut options = ServerOptions {
+        field: FieldOptions {
+            cell_m: args.field_cell,
+            window_s: args.field_window,
+            interval: std::time::Duration::from_secs_f64(args.field_interval),
+            ..Default::default()
+        },
         config,
         queue_frames: args.queue_frames,
         record_dir: args.record,

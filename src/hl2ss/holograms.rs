@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{UnitQuaternion, Vector3};
 
-use crate::protocol::DecodedBatch;
+use crate::protocol::{DecodedBatch, FieldMessage};
 
 pub const MESSAGE_QUEUE_PORT: u16 = 3816;
 pub const CREATE_PRIMITIVE: u32 = 0;
@@ -87,6 +87,23 @@ pub enum HologramError {
     Io { addr: String, error: std::io::Error },
     #[error("hl2ss message queue refused {refused} of {sent} commands (is the Unity plugin app running?)")]
     Refused { refused: usize, sent: usize },
+}
+
+/// One arrow to draw, Unity's convention.
+struct Arrow {
+    position: [f32; 3],
+    velocity: [f32; 3],
+    opacity: f32,
+}
+
+/// What the holograms show.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum HologramContent {
+    /// The newest frame's (causal) vectors.
+    #[default]
+    Vectors,
+    /// The session's mean-flow field: an arrow per grid cell.
+    Field,
 }
 
 /// The pool of arrows in the wearer's view.
@@ -175,15 +192,46 @@ impl Painter {
 
     /// Draws a batch unless the last update was under `1 / rate_hz` ago; `true` if drawn.
     pub fn paint(&mut self, batch: &DecodedBatch) -> Result<bool, HologramError> {
+        let arrows: Vec<Arrow> = batch
+            .vectors
+            .iter()
+            .map(|v| Arrow {
+                position: v.position_m,
+                velocity: v.velocity_m_per_s,
+                opacity: 1.0,
+            })
+            .collect();
+        self.paint_arrows(&arrows)
+    }
+
+    /// Draws a `field` message's cells (in Unity's convention): the mean velocity at each
+    /// cell's centre, cells of fewer than `FIELD_FULL_SAMPLES` samples faded.
+    pub fn paint_field(&mut self, field: &FieldMessage) -> Result<bool, HologramError> {
+        let arrows: Vec<Arrow> = field
+            .cells
+            .iter()
+            .map(|c| Arrow {
+                position: [c[0] as f32, c[1] as f32, c[2] as f32],
+                velocity: [c[4] as f32, c[5] as f32, c[6] as f32],
+                opacity: if c[3] >= crate::rerun_log::FIELD_FULL_SAMPLES as f64 {
+                    1.0
+                } else {
+                    0.35
+                },
+            })
+            .collect();
+        self.paint_arrows(&arrows)
+    }
+
+    fn paint_arrows(&mut self, arrows: &[Arrow]) -> Result<bool, HologramError> {
         let now = Instant::now();
         if self.last.is_some_and(|t| now - t < self.min_interval) {
             return Ok(false);
         }
         self.last = Some(now);
-        let speeds: Vec<f64> = batch
-            .vectors
+        let speeds: Vec<f64> = arrows
             .iter()
-            .map(|v| Vector3::from(v.velocity_m_per_s.map(f64::from)).norm())
+            .map(|a| Vector3::from(a.velocity.map(f64::from)).norm())
             .collect();
         if self.speed_max.is_none() && !speeds.is_empty() {
             let mut sorted = speeds.clone();
@@ -195,18 +243,18 @@ impl Painter {
         }
         let speed_max = self.speed_max.unwrap_or(1.0);
         let mut list = vec![message(BEGIN_DISPLAY_LIST, &[])];
-        let n = batch.vectors.len().min(self.keys.len());
-        for (i, (v, speed)) in batch.vectors.iter().zip(&speeds).take(n).enumerate() {
+        let n = arrows.len().min(self.keys.len());
+        for (i, (a, speed)) in arrows.iter().zip(&speeds).take(n).enumerate() {
             let key = self.keys[i];
             let (position, rotation, scale) =
-                arrow_transform(v.position_m, v.velocity_m_per_s, self.arrow_seconds, 0.004);
+                arrow_transform(a.position, a.velocity, self.arrow_seconds, 0.004);
             list.push(world_transform(key, position, rotation, scale));
             let [r, g, b] = crate::rerun_log::speed_color(*speed, speed_max);
             let rgba = [
                 f32::from(r) / 255.0,
                 f32::from(g) / 255.0,
                 f32::from(b) / 255.0,
-                1.0,
+                a.opacity,
             ];
             list.push(message(
                 SET_COLOR,
@@ -263,6 +311,7 @@ pub async fn follow_and_paint(
     secret: Option<String>,
     tls: Option<std::sync::Arc<rustls::ClientConfig>>,
     client: String,
+    content: HologramContent,
     mut painter: Painter,
     stop: impl std::future::Future<Output = ()>,
 ) -> Result<Painter, String> {
@@ -288,11 +337,19 @@ pub async fn follow_and_paint(
             return Err(format!("watching {watch_url}: {e}"));
         }
     };
-    let (batches, to_paint) = std::sync::mpsc::sync_channel::<DecodedBatch>(1);
+    enum Drawing {
+        Batch(DecodedBatch),
+        Field(Box<FieldMessage>),
+    }
+    let (batches, to_paint) = std::sync::mpsc::sync_channel::<Drawing>(1);
     let painting = std::thread::spawn(move || {
         let mut error = None;
-        for batch in to_paint {
-            if let Err(e) = painter.paint(&batch) {
+        for drawing in to_paint {
+            let painted = match &drawing {
+                Drawing::Batch(batch) => painter.paint(batch),
+                Drawing::Field(field) => painter.paint_field(field),
+            };
+            if let Err(e) = painted {
                 error = Some(e.to_string());
                 break;
             }
@@ -308,6 +365,12 @@ pub async fn follow_and_paint(
             m = ws.next() => match m {
                 Some(Ok(Message::Text(t))) => {
                     if subscribed {
+                        if let (HologramContent::Field, Ok(crate::protocol::ServerMessage::Field(field))) =
+                            (content, serde_json::from_str(t.as_str()))
+                        {
+                            // Skipped while the painter is busy: the next field is newer.
+                            let _ = batches.try_send(Drawing::Field(field));
+                        }
                         continue;
                     }
                     let Ok(crate::protocol::ServerMessage::Sessions { sessions }) =
@@ -327,9 +390,12 @@ pub async fn follow_and_paint(
                     }
                 }
                 Some(Ok(Message::Binary(b))) => {
+                    if content != HologramContent::Vectors {
+                        continue;
+                    }
                     if let Ok(batch) = crate::protocol::decode_batch(&b) {
                         if batch.kind == crate::protocol::BatchKind::Causal
-                            && batches.try_send(batch).is_err()
+                            && batches.try_send(Drawing::Batch(batch)).is_err()
                         {
                             // The painter is busy with the previous one: this one is skipped.
                         }

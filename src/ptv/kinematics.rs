@@ -16,6 +16,8 @@ pub struct MotionFit {
     pub velocity: Vector3<f64>,
     /// Root-mean-square distance of the samples from the fitted curve.
     pub rms_residual: f64,
+    /// What the samples say about this fit's error.
+    pub error: FitError,
 }
 
 impl MotionFit {
@@ -27,6 +29,43 @@ impl MotionFit {
             .chain(self.velocity.iter())
             .all(|v| v.is_finite())
             .then_some(self)
+    }
+}
+
+/// A fit's error budget per component (x, y, z): the sample noise its residuals show, what a
+/// sample noise does to the fitted velocity and position (the fit is linear in the samples, so
+/// their variances are the noise variance times a gain), and the squared bias expected from
+/// the path's terms the fit's order does not reach.
+///
+/// The noise estimate rests on few residuals (a window of 11 samples leaves 7 degrees of
+/// freedom to a cubic), so a caller that knows a typical noise for the scene can pool it in
+/// (`sigmas`) rather than let one window's luck decide.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitError {
+    pub noise_variance: Vector3<f64>,
+    /// Degrees of freedom behind `noise_variance` (0: the samples say nothing about it).
+    pub noise_dof: f64,
+    pub velocity_gain: Vector3<f64>,
+    pub position_gain: Vector3<f64>,
+    pub velocity_bias_sq: Vector3<f64>,
+}
+
+impl FitError {
+    /// 1-sigma velocity and position errors per component; `prior` is a typical sample noise
+    /// variance per component and the degrees of freedom it is worth, pooled with the fit's own
+    /// estimate in proportion.
+    pub fn sigmas(&self, prior: Option<(Vector3<f64>, f64)>) -> (Vector3<f64>, Vector3<f64>) {
+        let noise = match prior {
+            Some((variance, dof)) if dof > 0.0 => {
+                (self.noise_variance * self.noise_dof + variance * dof) / (self.noise_dof + dof)
+            }
+            _ => self.noise_variance,
+        };
+        let velocity = Vector3::from_fn(|c, _| {
+            (self.velocity_gain[c] * noise[c] + self.velocity_bias_sq[c]).sqrt()
+        });
+        let position = Vector3::from_fn(|c, _| (self.position_gain[c] * noise[c]).sqrt());
+        (velocity, position)
     }
 }
 
@@ -123,12 +162,44 @@ impl PolynomialFit {
         (self.squared_residuals.sum() / self.samples as f64).sqrt()
     }
 
+    /// Residual degrees of freedom: samples beyond the polynomial's terms.
+    fn dof(&self) -> usize {
+        self.samples.saturating_sub(self.coefficients.nrows())
+    }
+
+    /// Per component, the sample noise variance the residuals show (zero without residual
+    /// degrees of freedom).
+    fn noise_variance(&self) -> Vector3<f64> {
+        match self.dof() {
+            0 => Vector3::zeros(),
+            dof => self.squared_residuals / dof as f64,
+        }
+    }
+
+    /// The variances of velocity and position per unit of sample noise variance.
+    fn gains(&self) -> (f64, f64) {
+        (self.velocity_variance(1.0), self.inverse_normal[(0, 0)])
+    }
+
+    /// This fit's error budget with its own noise estimate and no bias term.
+    fn error(&self) -> FitError {
+        let (velocity_gain, position_gain) = self.gains();
+        FitError {
+            noise_variance: self.noise_variance(),
+            noise_dof: self.dof() as f64,
+            velocity_gain: Vector3::repeat(velocity_gain),
+            position_gain: Vector3::repeat(position_gain),
+            velocity_bias_sq: Vector3::zeros(),
+        }
+    }
+
     /// The fitted path at the evaluation time.
     fn motion(&self) -> MotionFit {
         MotionFit {
             position: Point3::from(Vector3::from_fn(|c, _| self.position(c))),
             velocity: Vector3::from_fn(|c, _| self.velocity(c)),
             rms_residual: self.rms_residual(),
+            error: self.error(),
         }
     }
 }
@@ -243,6 +314,8 @@ pub fn fit_adaptive(
     let dof = (cubic.samples - 4) as f64;
     let mut position = Vector3::zeros();
     let mut velocity = Vector3::zeros();
+    let (mut velocity_gain, mut position_gain) = (Vector3::zeros(), Vector3::zeros());
+    let mut velocity_bias_sq = Vector3::zeros();
     let mut choice = [FitChoice {
         half_window_frames: widest.half_window_frames as u8,
         order: 3,
@@ -262,16 +335,29 @@ pub fn fit_adaptive(
         } else {
             0.0
         };
-        let mut best = (
-            cubic.velocity_variance(sigma2),
-            cubic.position(c),
-            cubic.velocity(c),
-        );
+        // The error a fit states is another matter than the choice: there the cubic term,
+        // unless plainly significant, is better taken as zero; as an uncertainty its unbiased
+        // estimate counts (ignoring it understated turbulence's errors several-fold).
+        let d2_stated = (d * d - d_variance).max(0.0);
+        // (expected squared error, position, velocity, velocity and position gains, squared
+        // bias stated)
+        let candidate = |fit: &PolynomialFit, bias_sq: f64, bias_sq_stated: f64| {
+            let (velocity_gain, position_gain) = fit.gains();
+            (
+                bias_sq + fit.velocity_variance(sigma2),
+                fit.position(c),
+                fit.velocity(c),
+                velocity_gain,
+                position_gain,
+                bias_sq_stated,
+            )
+        };
+        let mut best = candidate(&cubic, 0.0, 0.0);
         for (m, fit, bias) in &quadratics {
             let expected = d2 * bias * bias + fit.velocity_variance(sigma2);
             // Ties go to the quadratic (the method's fit), then to the wider window.
             if expected <= best.0 {
-                best = (expected, fit.position(c), fit.velocity(c));
+                best = candidate(fit, d2 * bias * bias, d2_stated * bias * bias);
                 choice[c] = FitChoice {
                     half_window_frames: *m as u8,
                     order: 2,
@@ -282,9 +368,9 @@ pub fn fit_adaptive(
             if let Some((q, q_variance)) = past.quadratic.quadratic_term(c, sigma2) {
                 // The acceleration's square, its own noise taken out (unbiased, floored at 0).
                 let q2 = (q * q - q_variance).max(0.0);
-                let expected = q2 * b2 * b2 + d2 * b3 * b3 + line.velocity_variance(sigma2);
-                if expected < best.0 {
-                    best = (expected, line.position(c), line.velocity(c));
+                let bias_sq = q2 * b2 * b2 + d2 * b3 * b3;
+                if bias_sq + line.velocity_variance(sigma2) < best.0 {
+                    best = candidate(line, bias_sq, q2 * b2 * b2 + d2_stated * b3 * b3);
                     choice[c] = FitChoice {
                         half_window_frames: past.half_window_frames as u8,
                         order: 1,
@@ -294,11 +380,21 @@ pub fn fit_adaptive(
         }
         position[c] = best.1;
         velocity[c] = best.2;
+        velocity_gain[c] = best.3;
+        position_gain[c] = best.4;
+        velocity_bias_sq[c] = best.5;
     }
     MotionFit {
         position: Point3::from(position),
         velocity,
         rms_residual: reference_quadratic.rms_residual(),
+        error: FitError {
+            noise_variance: cubic.noise_variance(),
+            noise_dof: dof,
+            velocity_gain,
+            position_gain,
+            velocity_bias_sq,
+        },
     }
     .finite()
     .map(|fit| AdaptiveFit { fit, choice })
@@ -327,14 +423,26 @@ pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<MotionF
     }
     let velocity = stp / stt;
     let a = mean_p - velocity * mean_t;
-    let squared: f64 = samples
-        .iter()
-        .map(|(t, p)| (p.coords - (a + velocity * (t - t_eval_s))).norm_squared())
-        .sum();
+    let squared_by_component = samples.iter().fold(Vector3::zeros(), |sum, (t, p)| {
+        sum + (p.coords - (a + velocity * (t - t_eval_s))).map(|r| r * r)
+    });
+    let squared = squared_by_component.sum();
+    let dof = samples.len() - 2;
     let fit = MotionFit {
         position: Point3::from(a),
         velocity,
         rms_residual: (squared / n).sqrt(),
+        error: FitError {
+            noise_variance: if dof == 0 {
+                Vector3::zeros()
+            } else {
+                squared_by_component / dof as f64
+            },
+            noise_dof: dof as f64,
+            velocity_gain: Vector3::repeat(1.0 / stt),
+            position_gain: Vector3::repeat(1.0 / n + mean_t * mean_t / stt),
+            velocity_bias_sq: Vector3::zeros(),
+        },
     };
     fit.finite()
 }

@@ -6,6 +6,7 @@
 
 pub mod blobs;
 pub mod detect;
+pub mod field;
 pub mod kinematics;
 pub mod link;
 pub mod pipeline;

@@ -9,11 +9,12 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::detect::{DetectConfig, Detection, Detector, Separation};
+use super::kinematics::FitError;
 use super::kinematics::{
     fit_adaptive, fit_line, fit_quadratic, neighbour_outliers, FitChoice, NeighbourTest,
     QuadraticWindow,
 };
-use super::link::PointGrid;
+use super::link::{median, PointGrid};
 use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use super::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
 use super::{ImageView, StereoFrame};
@@ -299,6 +300,12 @@ pub struct VelocityVector {
     /// World frame, metres per second (head motion removed when poses are given).
     pub velocity_in_world: Vector3<f64>,
     pub rms_residual_m: f64,
+    /// 1-sigma error of each velocity component, metres per second: centroid noise carried
+    /// through triangulation and the velocity fit, plus the bias the fit expects from the
+    /// path's curvature (`Pipeline` explains the noise model).
+    pub velocity_sigma: Vector3<f64>,
+    /// 1-sigma error of each position component, metres.
+    pub position_sigma: Vector3<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -425,6 +432,14 @@ impl Sample {
     }
 }
 
+/// A centred vector, the fit chosen per component (adaptive fits), and what its window says
+/// about the scene's noise (`NoisePool`).
+struct Centred {
+    vector: VelocityVector,
+    choice: Option<[FitChoice; 3]>,
+    noise_ratio: Option<f64>,
+}
+
 /// A stereo pair that no live 3D track continued: a new track, unless it rejoins an orphan.
 struct Birth {
     left_track: u64,
@@ -472,6 +487,52 @@ pub struct Pipeline {
     seq: u64,
     /// The last `M + 1` frames pushed, newest at the back.
     recent_frames: VecDeque<FrameRef>,
+    noise_pool: NoisePool,
+}
+
+/// The scene's typical centroid noise, learnt from the tracks' own fit residuals, as a
+/// disparity noise variance (pixels squared).
+///
+/// Each vector's uncertainty rests on its window's residuals, which are few (7 degrees of
+/// freedom for 11 samples): alone, their luck would make some sigmas far too small. Pooled with
+/// what the scene's other tracks show (scaled to this particle's depth and line of sight by the
+/// triangulation's geometry), the estimate steadies while a particle noisier than the rest
+/// still shows it.
+#[derive(Debug, Clone, Default)]
+struct NoisePool {
+    /// Recent windows' noise per unit disparity variance (see `Pipeline::noise_unit`).
+    ratios: VecDeque<f64>,
+}
+
+impl NoisePool {
+    const CAPACITY: usize = 511;
+    /// Windows needed before the pool is trusted.
+    const MIN_WINDOWS: usize = 16;
+    /// Degrees of freedom the pooled estimate is worth against a window's own.
+    const WEIGHT_DOF: f64 = 10.0;
+
+    fn add(&mut self, ratio: f64) {
+        if !(ratio.is_finite() && ratio > 0.0) {
+            return;
+        }
+        if self.ratios.len() == Self::CAPACITY {
+            self.ratios.pop_front();
+        }
+        self.ratios.push_back(ratio);
+    }
+
+    /// The pooled disparity noise variance: the median window, corrected for the median of a
+    /// chi-square sitting below its mean (Wilson-Hilferty, at a typical window's 21 degrees
+    /// of freedom: three components of 11 samples less a cubic's 4 terms).
+    fn variance(&self) -> Option<f64> {
+        if self.ratios.len() < Self::MIN_WINDOWS {
+            return None;
+        }
+        let mut sorted: Vec<f64> = self.ratios.iter().copied().collect();
+        let median = median(&mut sorted);
+        const TYPICAL_DOF: f64 = 21.0;
+        Some(median / (1.0 - 2.0 / (9.0 * TYPICAL_DOF)).powi(3))
+    }
 }
 
 impl Pipeline {
@@ -505,6 +566,7 @@ impl Pipeline {
             previous_t_s: None,
             seq: 0,
             recent_frames: VecDeque::new(),
+            noise_pool: NoisePool::default(),
         })
     }
 
@@ -802,7 +864,7 @@ impl Pipeline {
         let mut centred = Vec::new();
         for track in self.tracks.values().chain(&self.retired) {
             match self.centred_vector(track, seq) {
-                Some(Ok(found)) if self.is_plausible(&found.0, track) => centred.push(found),
+                Some(Ok(found)) if self.is_plausible(&found.vector, track) => centred.push(found),
                 Some(Ok(_)) => out.stats.implausible += 1,
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
@@ -821,14 +883,19 @@ impl Pipeline {
         let mut causal_outliers = outliers_among(out.causal_vectors.iter(), &test).into_iter();
         out.causal_vectors
             .retain(|_| !causal_outliers.next().unwrap_or(false));
-        let outliers = outliers_among(centred.iter().map(|(v, _)| v), &test);
-        for ((v, choice), outlier) in centred.into_iter().zip(outliers) {
+        let outliers = outliers_among(centred.iter().map(|c| &c.vector), &test);
+        for (found, outlier) in centred.into_iter().zip(outliers) {
             if outlier {
                 out.stats.outliers += 1;
                 continue;
             }
-            out.vectors.push(v);
-            for c in choice.iter().flatten() {
+            // Learnt after the frame's vectors, so a frame's sigmas do not depend on the order
+            // of its tracks.
+            if let Some(ratio) = found.noise_ratio {
+                self.noise_pool.add(ratio);
+            }
+            out.vectors.push(found.vector);
+            for c in found.choice.iter().flatten() {
                 if c.order == 1 {
                     out.stats.fit_components_line += 1;
                 } else if c.order > 2 {
@@ -969,6 +1036,7 @@ impl Pipeline {
         {
             return None;
         }
+        let (velocity_sigma, position_sigma) = self.sigmas(&fit.error, newest);
         Some(VelocityVector {
             frame_index: newest.frame_index,
             t_s: newest.t_s,
@@ -976,7 +1044,42 @@ impl Pipeline {
             position_in_world: fit.position,
             velocity_in_world: fit.velocity,
             rms_residual_m: fit.rms_residual,
+            velocity_sigma,
+            position_sigma,
         })
+    }
+
+    /// A sample's noise variance per world component for a unit disparity variance: the
+    /// disparity error moves it along the left camera's line of sight by `z^2 / (f b)` per
+    /// pixel, and across it each camera's centroid error (disparity's over sqrt 2), averaged
+    /// over the two cameras, by `z / (2 f)` per pixel.
+    fn noise_unit(&self, sample: &Sample) -> Vector3<f64> {
+        let focal_px = self.rectification.focal_px;
+        let z = sample.depth_m;
+        let along = z * z / (focal_px * self.rectification.baseline_m);
+        let across = z / (2.0 * focal_px);
+        let sight = (sample.point_in_world - sample.camera_in_world)
+            .try_normalize(1e-12)
+            .unwrap_or_else(Vector3::z);
+        sight.map(|s| along * along * s * s + across * across * (1.0 - s * s))
+    }
+
+    /// A fit's 1-sigma velocity and position errors, its own noise estimate pooled with the
+    /// scene's (`NoisePool`) scaled to where `sample` sits.
+    fn sigmas(&self, error: &FitError, sample: &Sample) -> (Vector3<f64>, Vector3<f64>) {
+        let prior = self
+            .noise_pool
+            .variance()
+            .map(|k| (self.noise_unit(sample) * k, NoisePool::WEIGHT_DOF));
+        error.sigmas(prior)
+    }
+
+    /// What a window's residuals say the disparity noise variance is (see `noise_unit`).
+    fn noise_ratio(&self, error: &FitError, sample: &Sample) -> Option<f64> {
+        // Fewer residuals than this say too little to teach the pool.
+        const MIN_DOF: f64 = 4.0;
+        (error.noise_dof >= MIN_DOF)
+            .then(|| error.noise_variance.sum() / self.noise_unit(sample).sum())
     }
 
     /// Frames of a track's history kept behind its newest sample: the velocity windows reach
@@ -1167,12 +1270,7 @@ impl Pipeline {
     /// start or end; a narrower window may miss none). `w` is M, or narrower down to 2 where the particle crosses
     /// `min_window_travel_px` within it; with `adaptive_fit` the fit is chosen per component
     /// among the windows the track supports (returned with the vector).
-    #[allow(clippy::type_complexity)] // one private helper's Option<Result<(vector, choice)>>
-    fn centred_vector(
-        &self,
-        track: &Track3d,
-        seq: u64,
-    ) -> Option<Result<(VelocityVector, Option<[FitChoice; 3]>), ()>> {
+    fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<Centred, ()>> {
         let velocity = &self.config.velocity;
         let m = velocity.half_window_frames as u64;
         let centre_seq = seq.checked_sub(m)?;
@@ -1206,17 +1304,21 @@ impl Pipeline {
         } else {
             (windows.last()?.motion()?, None)
         };
-        Some(Ok((
-            VelocityVector {
+        let (velocity_sigma, position_sigma) = self.sigmas(&fit.error, centre);
+        Some(Ok(Centred {
+            vector: VelocityVector {
                 frame_index: centre.frame_index,
                 t_s: centre.t_s,
                 track_id: track.id,
                 position_in_world: fit.position,
                 velocity_in_world: fit.velocity,
                 rms_residual_m: fit.rms_residual,
+                velocity_sigma,
+                position_sigma,
             },
             choice,
-        )))
+            noise_ratio: self.noise_ratio(&fit.error, centre),
+        }))
     }
 
     /// The velocity windows a track's samples (those separated at least as well as `worst`)

@@ -2,6 +2,7 @@
 //! recorder thread.
 
 use std::path::PathBuf;
+use std::sync::atomic::Ordering;
 use std::sync::mpsc as std_mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -13,13 +14,14 @@ use nalgebra::Isometry3;
 use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
-use super::{unix_ms, Hub, HubEvent, PublishedBatch, SessionShared};
+use super::{unix_ms, FieldOptions, Hub, HubEvent, PublishedBatch, PublishedField, SessionShared};
 use crate::geometry::StereoRig;
 use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
     Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
 };
+use crate::ptv::field::StreamField;
 use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{FrameEntry, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger, RerunSink};
@@ -337,6 +339,7 @@ impl Connection {
             },
             counters: Default::default(),
             viewers: Default::default(),
+            reset_field: Default::default(),
             close_queue: {
                 let queue = Arc::clone(&queue);
                 Box::new(move || queue.close())
@@ -389,6 +392,8 @@ impl Connection {
             totals: RunTotals::default(),
             rerun,
             frames_processed: 0,
+            uncertainty: hello.uncertainty,
+            field: LiveField::new(&self.hub.options.field),
         };
         std::thread::Builder::new()
             .name(format!("pipeline-{id}"))
@@ -641,6 +646,49 @@ struct Worker {
     totals: RunTotals,
     rerun: Option<RerunLogger>,
     frames_processed: u64,
+    /// The headset asked for batches with velocity errors.
+    uncertainty: bool,
+    field: LiveField,
+}
+
+/// A session's mean-flow field: its refined vectors binned as they come, published to its
+/// viewers at most once per `FieldOptions::interval`.
+struct LiveField {
+    field: StreamField,
+    interval: Duration,
+    max_cells: usize,
+    last_published: Option<Instant>,
+}
+
+impl LiveField {
+    fn new(options: &FieldOptions) -> Self {
+        Self {
+            // The options were checked when the server started.
+            field: StreamField::new(options.cell_m, options.window_s).unwrap_or_default(),
+            interval: options.interval,
+            max_cells: options.max_cells,
+            last_published: None,
+        }
+    }
+
+    /// The field to publish now, if it is time (and there is a grid).
+    fn due(&mut self, shared: &SessionShared, frame: (u64, f64)) -> Option<PublishedField> {
+        let grid = self.field.grid()?;
+        if self
+            .last_published
+            .is_some_and(|at| at.elapsed() < self.interval)
+        {
+            return None;
+        }
+        self.last_published = Some(Instant::now());
+        Some(PublishedField::new(
+            shared.number,
+            shared.id().to_string(),
+            frame,
+            grid,
+            self.max_cells,
+        ))
+    }
 }
 
 impl Worker {
@@ -675,7 +723,7 @@ impl Worker {
 
     /// Sends a batch to the headset; the number of vectors delivered.
     fn send_batch(&self, batch: &PublishedBatch) -> u64 {
-        let bytes = batch.encoded(self.shared.description.convention);
+        let bytes = batch.encoded(self.shared.description.convention, self.uncertainty);
         if self.send(Message::Binary(bytes)) {
             batch.batch.vectors.len() as u64
         } else {
@@ -766,6 +814,13 @@ impl Worker {
             vectors: output.causal_vectors,
         });
         let mut sent = self.send_batch(&causal);
+        if self.shared.reset_field.swap(false, Ordering::Relaxed) {
+            self.field.field.reset();
+        }
+        self.field.field.add_vectors(&output.vectors);
+        let field = output
+            .centred_frame
+            .and_then(|centre| self.field.due(&self.shared, (centre.index, centre.t_s)));
         let refined = output.centred_frame.map(|centre| {
             PublishedBatch::new(Batch {
                 kind: BatchKind::Refined,
@@ -790,6 +845,12 @@ impl Worker {
         let _ = self.events.send(HubEvent::Batch(Arc::new(causal)));
         if let Some(r) = refined {
             let _ = self.events.send(HubEvent::Batch(Arc::new(r)));
+        }
+        if let Some(field) = field {
+            if let Some(logger) = &self.rerun {
+                logger.log_field(field.frame_index, field.t_s, field.cells.clone(), false);
+            }
+            let _ = self.events.send(HubEvent::Field(Arc::new(field)));
         }
         {
             let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();

@@ -29,7 +29,7 @@ mod web;
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::Duration;
 
@@ -44,9 +44,10 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, watch as watch_channel, Notify};
 
 use crate::protocol::{
-    Batch, Convention, Counters, ErrorCode, ServerMessage, SessionDescription, SessionInfo,
-    PROTOCOL_VERSION,
+    Batch, Convention, Counters, ErrorCode, FieldMessage, ServerMessage, SessionDescription,
+    SessionInfo, FIELD_COLUMNS, PROTOCOL_VERSION,
 };
+use crate::ptv::field::{CellSummary, FieldGrid};
 use crate::ptv::PipelineConfig;
 use crate::rerun_log::RerunOptions;
 
@@ -95,6 +96,32 @@ pub struct ServerOptions {
     /// Frames per second a session takes, averaged over a second (a burst of one second's worth
     /// passes); faster frames are refused (`rate_limited`). 0: no limit.
     pub max_frame_rate_hz: f64,
+    /// Each session's mean-flow field.
+    pub field: FieldOptions,
+}
+
+/// How a live session bins its vectors into a mean-flow field (`field` messages to viewers).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FieldOptions {
+    /// Cell side, metres; `None`: sized from the session's first vectors (`field::default_cell_m`).
+    pub cell_m: Option<f64>,
+    /// Forget samples older than this, seconds of sensor time; `None`: keep the whole session.
+    pub window_s: Option<f64>,
+    /// At most one `field` message per session this often.
+    pub interval: Duration,
+    /// The most cells a `field` message carries (the best-sampled).
+    pub max_cells: usize,
+}
+
+impl Default for FieldOptions {
+    fn default() -> Self {
+        Self {
+            cell_m: None,
+            window_s: None,
+            interval: Duration::from_secs(1),
+            max_cells: 4096,
+        }
+    }
 }
 
 impl Default for ServerOptions {
@@ -119,6 +146,7 @@ impl Default for ServerOptions {
             max_viewers_per_session: 64,
             max_image_side: 4096,
             max_frame_rate_hz: 120.0,
+            field: FieldOptions::default(),
         }
     }
 }
@@ -127,7 +155,8 @@ impl Default for ServerOptions {
 #[derive(Debug)]
 pub(crate) struct PublishedBatch {
     pub batch: Batch,
-    encoded: [OnceLock<Bytes>; 3],
+    /// Per convention, without and with the velocity errors.
+    encoded: [[OnceLock<Bytes>; 2]; 3],
 }
 
 impl PublishedBatch {
@@ -138,9 +167,77 @@ impl PublishedBatch {
         }
     }
 
-    pub fn encoded(&self, convention: Convention) -> Bytes {
+    pub fn encoded(&self, convention: Convention, uncertainty: bool) -> Bytes {
+        self.encoded[usize::from(convention.code())][usize::from(uncertainty)]
+            .get_or_init(|| self.batch.encode_with(convention, uncertainty).into())
+            .clone()
+    }
+}
+
+/// A session's mean-flow field, published to its viewers; encoded per convention on demand.
+#[derive(Debug)]
+pub(crate) struct PublishedField {
+    pub session_number: u32,
+    pub session: String,
+    pub frame_index: u64,
+    pub t_s: f64,
+    pub cell_m: f64,
+    pub window_s: Option<f64>,
+    pub samples: u64,
+    pub truncated: bool,
+    /// World frame, OpenCV axes.
+    pub cells: Vec<CellSummary>,
+    encoded: [OnceLock<String>; 3],
+}
+
+impl PublishedField {
+    pub fn new(
+        session_number: u32,
+        session: String,
+        frame: (u64, f64),
+        grid: &FieldGrid,
+        max_cells: usize,
+    ) -> Self {
+        let mut cells: Vec<CellSummary> = grid.cells().collect();
+        let truncated = cells.len() > max_cells;
+        if truncated {
+            // The best-sampled cells, sent in index order.
+            cells.sort_by(|a, b| b.samples.cmp(&a.samples).then(a.index.cmp(&b.index)));
+            cells.truncate(max_cells);
+            cells.sort_by_key(|c| c.index);
+        }
+        Self {
+            session_number,
+            session,
+            frame_index: frame.0,
+            t_s: frame.1,
+            cell_m: grid.cell_m(),
+            window_s: grid.window_s(),
+            samples: grid.samples_added(),
+            truncated,
+            cells,
+            encoded: Default::default(),
+        }
+    }
+
+    pub fn message(&self, convention: Convention) -> FieldMessage {
+        FieldMessage {
+            session: self.session.clone(),
+            convention,
+            frame_index: self.frame_index,
+            t_s: self.t_s,
+            cell_m: self.cell_m,
+            window_s: self.window_s,
+            samples: self.samples,
+            truncated: self.truncated,
+            columns: FIELD_COLUMNS.iter().map(|c| c.to_string()).collect(),
+            cells: FieldMessage::rows(&self.cells, convention),
+        }
+    }
+
+    pub fn encoded(&self, convention: Convention) -> String {
         self.encoded[usize::from(convention.code())]
-            .get_or_init(|| self.batch.encode(convention).into())
+            .get_or_init(|| ServerMessage::Field(Box::new(self.message(convention))).to_json())
             .clone()
     }
 }
@@ -149,6 +246,7 @@ impl PublishedBatch {
 #[derive(Debug, Clone)]
 pub(crate) enum HubEvent {
     Batch(Arc<PublishedBatch>),
+    Field(Arc<PublishedField>),
     SessionsChanged,
     Status {
         session_number: u32,
@@ -169,6 +267,8 @@ pub(crate) struct SessionShared {
     pub counters: Mutex<Counters>,
     /// Viewers subscribed to this session by name.
     pub viewers: AtomicUsize,
+    /// A viewer asked for the mean-flow field to be emptied; the pipeline thread does it.
+    pub reset_field: AtomicBool,
     /// Closes the session's frame queue: its pipeline then finishes what is queued and ends.
     pub close_queue: Box<dyn Fn() + Send + Sync>,
 }

@@ -23,6 +23,8 @@ enum Target {
 struct Subscription {
     target: Target,
     convention: Convention,
+    /// Batches with each vector's velocity errors.
+    uncertainty: bool,
 }
 
 /// Keeps the session's viewer count right however the subscription ends.
@@ -62,9 +64,14 @@ impl Viewer {
     /// What this viewer is sent for a hub event, if anything.
     fn message_for(&mut self, event: HubEvent, sessions: impl Fn() -> Message) -> Option<Message> {
         match event {
-            HubEvent::Batch(published) => self
-                .wants(published.batch.session_number)
-                .map(|convention| Message::Binary(published.encoded(convention))),
+            HubEvent::Batch(published) => {
+                let uncertainty = self.subscription.as_ref().is_some_and(|s| s.uncertainty);
+                self.wants(published.batch.session_number)
+                    .map(|convention| Message::Binary(published.encoded(convention, uncertainty)))
+            }
+            HubEvent::Field(field) => self
+                .wants(field.session_number)
+                .map(|convention| Message::Text(field.encoded(convention).into())),
             HubEvent::SessionsChanged => Some(sessions()),
             HubEvent::Status {
                 session_number,
@@ -277,9 +284,30 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
             viewer.set(None);
             ServerMessage::Unsubscribed
         }
+        ViewerMessage::ResetField { session } => {
+            let sessions = hub.sessions();
+            let reset: Vec<&super::SessionShared> = if session == "*" {
+                sessions.values().map(|s| s.as_ref()).collect()
+            } else if let Some(s) = sessions.values().find(|s| s.id() == session) {
+                vec![s.as_ref()]
+            } else {
+                return ProtocolError::new(
+                    ErrorCode::UnknownSession,
+                    format!("no live session {session:?} (GET /v1/sessions lists them; \"*\" resets all)"),
+                )
+                .to_message();
+            };
+            for s in &reset {
+                s.reset_field.store(true, Ordering::Relaxed);
+            }
+            ServerMessage::FieldReset {
+                sessions: reset.iter().map(|s| s.id().to_string()).collect(),
+            }
+        }
         ViewerMessage::Subscribe {
             session,
             convention,
+            uncertainty,
         } => {
             let target = if session == "*" {
                 Target::All
@@ -305,10 +333,15 @@ fn handle_request(hub: &Hub, viewer: &mut Viewer, text: &str) -> ServerMessage {
                 )
                 .to_message();
             }
-            viewer.set(Some(Subscription { target, convention }));
+            viewer.set(Some(Subscription {
+                target,
+                convention,
+                uncertainty,
+            }));
             ServerMessage::Subscribed {
                 session,
                 convention,
+                uncertainty,
             }
         }
     }

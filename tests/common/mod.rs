@@ -147,8 +147,12 @@ pub async fn next_binary(ws: &mut Socket) -> DecodedBatch {
             Message::Binary(b) => return decode_batch(&b).expect("a batch"),
             Message::Text(t) => {
                 let parsed: ServerMessage = serde_json::from_str(t.as_str()).expect("JSON");
+                // Status reports and mean-flow fields come between batches.
                 assert!(
-                    matches!(parsed, ServerMessage::Status { .. }),
+                    matches!(
+                        parsed,
+                        ServerMessage::Status { .. } | ServerMessage::Field(_)
+                    ),
                     "unexpected {parsed:?}"
                 );
             }

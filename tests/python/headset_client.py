@@ -116,7 +116,10 @@ def decode_batch(data, convention=None, session=None, what="batch"):
     if conv not in (0, 1, 2) or (convention is not None and conv != convention):
         bad.append(f"convention {conv} (session's: {convention})")
     if session is not None and sess != session: bad.append(f"session number {sess} (welcome: {session})")
-    if len(data) != BATCH_HDR.size + RECORD.size * count: bad.append(f"{len(data)} bytes for {count} records")
+    sigmas = flags & 2  # velocity errors after the records (asked for with "uncertainty": true)
+    if flags & ~3: bad.append(f"unknown batch flags {flags:#x}")
+    if len(data) != BATCH_HDR.size + (RECORD.size + (12 if sigmas else 0)) * count:
+        bad.append(f"{len(data)} bytes for {count} records{' with sigmas' if sigmas else ''}")
     if not math.isfinite(t_s): bad.append(f"t_s {t_s}")
     if age_us < proc_us: bad.append(f"age_us {age_us} < processing_us {proc_us} (age includes processing)")
     if bad:
@@ -131,7 +134,15 @@ def decode_batch(data, convention=None, session=None, what="batch"):
         if not all(map(math.isfinite, (x, y, z, u, v, w, res))) or res < 0:
             raise Failure(f"{what}: record {i} has non-finite or negative numbers")
         records.append((tid, (x, y, z), (u, v, w), res))
-    return dict(kind=KINDS[kind], convention=conv, world=bool(world), session=sess, frame_index=index,
+    errors = []
+    if sigmas:
+        at = BATCH_HDR.size + RECORD.size * count
+        for i in range(count):
+            s3 = struct.unpack_from("<3f", data, at + 12 * i)
+            if not all(math.isfinite(v) and v >= 0 for v in s3):
+                raise Failure(f"{what}: vector {i} has sigmas {s3}: not finite and non-negative")
+            errors.append(s3)
+    return dict(sigmas=errors if sigmas else None,kind=KINDS[kind], convention=conv, world=bool(world), session=sess, frame_index=index,
                 t_s=t_s, processing_us=proc_us, records=records)
 
 

@@ -2,12 +2,14 @@
 // draws its velocity vectors as instanced arrows, in a flat 3D view or in WebXR.
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/OrbitControls.js';
-import { decodeBatch, KIND_CAUSAL, KIND_REFINED, RECORD_FLOATS } from './protocol.js';
+import { decodeBatch, fieldCells, KIND_CAUSAL, KIND_REFINED, RECORD_FLOATS } from './protocol.js';
 import { speedColor, niceCeiling, rampCss } from './colormap.js';
 import { Placement } from './placement.js';
 
 const params = new URLSearchParams(location.search);
 const TRAIL_FRAMES = 12;
+// Field cells with fewer samples are drawn faded: their mean is still noisy.
+const FIELD_FULL_SAMPLES = 20;
 const BACKGROUND = new THREE.Color(0x101214);
 const $ = (id) => document.getElementById(id);
 
@@ -48,6 +50,8 @@ const arrowGeometry = new THREE.LatheGeometry(
 // Unlit, so an arrow's colour is exactly the legend's colour for its speed.
 const arrowMaterial = new THREE.MeshBasicMaterial({ color: 0xffffff });
 let arrows = makeArrows(1024);
+// The mean-flow field's arrows, one per cell.
+let fieldArrows = makeArrows(256);
 
 function makeArrows(capacity) {
   const mesh = new THREE.InstancedMesh(arrowGeometry, arrowMaterial, capacity);
@@ -132,7 +136,12 @@ const state = {
   xrReferenceSpace: null,
   pixelProbe: null,
   contextLosses: 0,
+  // The subscribed session's newest `field` message, per session number.
+  fields: new Map(),
+  showField: params.get('field') === 'true',
+  fieldMessages: 0,
 };
+$('field').checked = state.showField;
 $('kind').value = state.kind === KIND_REFINED ? 'refined' : 'causal';
 
 function showMessage(text) {
@@ -235,9 +244,22 @@ function onText(text) {
     case 'status':
       state.dropped.set(msg.session, msg.counters?.frames_dropped ?? 0);
       break;
+    case 'field': {
+      const n = sessionNumber(msg.session);
+      if (n === null || state.paused) break;
+      state.fields.set(n, { session: msg.session, cells: fieldCells(msg), samples: msg.samples ?? 0, cellM: msg.cell_m });
+      state.fieldMessages++;
+      state.dirty = true;
+      break;
+    }
+    case 'field_reset':
+      for (const id of msg.sessions ?? []) state.fields.delete(sessionNumber(id));
+      state.dirty = true;
+      break;
     case 'session_ended': {
       const n = sessionNumber(msg.session);
       state.latest.delete(n);
+      state.fields.delete(n);
       for (const key of state.trails.keys()) if (key.startsWith(`${n}:`)) state.trails.delete(key);
       state.dirty = true;
       break;
@@ -292,11 +314,12 @@ function subscribe(session) {
     state.latest.clear();
     state.trails.clear();
     state.dropped.clear();
+    state.fields.clear();
     placement.reset();
     state.speedMax = null;
     state.dirty = true;
   }
-  send({ type: 'subscribe', session, convention: 'webxr' });
+  send({ type: 'subscribe', session, convention: 'webxr', uncertainty: true });
 }
 
 function onBatch(buffer) {
@@ -385,6 +408,7 @@ function redraw(now) {
   for (const entry of state.latest.values()) {
     const { batch } = entry;
     const f = batch.floats;
+    const sigmas = batch.sigmas;
     for (let i = 0; i < batch.count; i++) {
       const o = i * RECORD_FLOATS;
       tmp.p.set(f[o + 2], f[o + 3], f[o + 4]);
@@ -398,7 +422,15 @@ function redraw(now) {
       tmp.m.compose(tmp.p, tmp.q, tmp.s);
       arrows.setMatrixAt(n, tmp.m);
       speedColor(speed, speedMax, tmp.rgb);
-      arrows.setColorAt(n, tmp.c.setRGB(tmp.rgb[0], tmp.rgb[1], tmp.rgb[2], THREE.SRGBColorSpace));
+      tmp.c.setRGB(tmp.rgb[0], tmp.rgb[1], tmp.rgb[2], THREE.SRGBColorSpace);
+      if (sigmas) {
+        // An uncertain vector is drawn lighter: faded toward the background by its error
+        // relative to its speed (fully faded at 50 %, never below a third of its colour).
+        const error = Math.hypot(sigmas[3 * i], sigmas[3 * i + 1], sigmas[3 * i + 2]);
+        const relative = error / Math.max(speed, 1e-9);
+        tmp.c.lerp(BACKGROUND, Math.min(relative / 0.5, 1) * 0.67);
+      }
+      arrows.setColorAt(n, tmp.c);
       pointAttr.setXYZ(n, f[o + 2], f[o + 3], f[o + 4]);
       checksum += f[o + 2] + f[o + 6];
       n++;
@@ -419,6 +451,43 @@ function redraw(now) {
   points.geometry.setDrawRange(0, n);
   state.drawChecksum = checksum;
   drawTrails();
+  drawField(speedMax, tau, minWidth);
+}
+
+function drawField(speedMax, tau, minWidth) {
+  let total = 0;
+  if (state.showField) for (const field of state.fields.values()) total += field.cells.length;
+  if (total > fieldArrows.instanceMatrix.count) {
+    volume.remove(fieldArrows);
+    fieldArrows.dispose();
+    fieldArrows = makeArrows(2 ** Math.ceil(Math.log2(total)));
+  }
+  let n = 0;
+  if (state.showField) {
+    for (const field of state.fields.values()) {
+      for (const cell of field.cells) {
+        tmp.p.set(cell.x, cell.y, cell.z);
+        tmp.d.set(cell.u, cell.v, cell.w);
+        const speed = tmp.d.length();
+        const length = Math.max(speed * tau, 1e-6);
+        if (speed > 0) tmp.q.setFromUnitVectors(tmp.up, tmp.d.divideScalar(speed));
+        else tmp.q.identity();
+        // Thicker than the live arrows, so the field reads apart from them.
+        const width = 1.8 * Math.max(length, minWidth);
+        tmp.s.set(width, length, width);
+        tmp.m.compose(tmp.p, tmp.q, tmp.s);
+        fieldArrows.setMatrixAt(n, tmp.m);
+        speedColor(speed, speedMax, tmp.rgb);
+        tmp.c.setRGB(tmp.rgb[0], tmp.rgb[1], tmp.rgb[2], THREE.SRGBColorSpace);
+        if (cell.n < FIELD_FULL_SAMPLES) tmp.c.lerp(BACKGROUND, 0.6);
+        fieldArrows.setColorAt(n, tmp.c);
+        n++;
+      }
+    }
+  }
+  fieldArrows.count = n;
+  fieldArrows.instanceMatrix.needsUpdate = true;
+  if (fieldArrows.instanceColor) fieldArrows.instanceColor.needsUpdate = true;
 }
 
 function drawTrails() {
@@ -494,6 +563,11 @@ function updateHud() {
     h.latencyMs === null ? '–' : `${h.latencyMs.toFixed(1)} ms (rtt ${state.rttMs.toFixed(1)})`;
   $('hud-dropped').textContent = String(h.droppedFrames);
   $('hud-frame').textContent = state.frameIndex === null ? '–' : `${state.frameIndex}${state.paused ? ' (paused)' : ''}`;
+  const fields = [...state.fields.values()];
+  $('hud-field').textContent = fields.length
+    ? `${fields.reduce((sum, f) => sum + f.cells.length, 0)} cells of ${formatNumber(fields[0].cellM)} m, ` +
+      `${fields.reduce((sum, f) => sum + f.samples, 0)} samples${state.showField ? '' : ' (hidden)'}`
+    : '–';
   updateLegend();
 }
 setInterval(updateHud, 500);
@@ -509,6 +583,13 @@ $('kind').addEventListener('change', (e) => {
   state.dirty = true;
 });
 $('trails').addEventListener('change', () => (state.dirty = true));
+$('field').addEventListener('change', (e) => {
+  state.showField = e.target.checked;
+  state.dirty = true;
+});
+$('reset-field').addEventListener('click', () => {
+  if (state.subscribed) send({ type: 'reset_field', session: state.subscribed });
+});
 $('true-scale').addEventListener('change', (e) => {
   placement.trueScale = e.target.checked;
   state.dirty = true;
@@ -655,6 +736,9 @@ window.mrptv = {
     subscribed: state.subscribed,
     sessions: state.sessions.map((s) => s.id),
     arrows: arrows.count,
+    fieldArrows: fieldArrows.count,
+    fieldCells: [...state.fields.values()].reduce((sum, f) => sum + f.cells.length, 0),
+    fieldMessages: state.fieldMessages,
     trailVertices: trails.geometry.drawRange.count,
     batchesDrawn: state.batchesDrawn,
     frameIndex: state.frameIndex,
