@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::isometry_to_row_major;
-use crate::ptv::field::CellSummary;
+use crate::ptv::field::{CellSummary, FieldSample};
 use crate::ptv::{MatchedPoint, VelocityVector};
 use crate::synth::TruthRow;
 
@@ -205,6 +205,17 @@ impl From<&VelocityVector> for TrackRow {
             position: v.position_in_world,
             velocity: v.velocity_in_world,
             sigma: Some((v.velocity_sigma, v.position_sigma)),
+        }
+    }
+}
+
+impl From<&TrackRow> for FieldSample {
+    fn from(r: &TrackRow) -> Self {
+        Self {
+            t_s: r.t_s,
+            track_id: r.track_id,
+            position: r.position,
+            velocity: r.velocity,
         }
     }
 }

@@ -196,7 +196,8 @@ async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
     bridge_session(&[]).await;
 }
 
-/// The same HoloLens streaming H.264 (as over Wi-Fi), decoded by the bridge.
+/// The same HoloLens streaming H.264 (as over Wi-Fi), decoded by the bridge; the holograms show
+/// the session's mean-flow field (`--holograms field`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fake_hololens_streaming_h264_is_decoded_by_the_bridge() {
     bridge_session(&["--codec", "h264", "--bitrate-mbps", "2.5"]).await;
@@ -206,6 +207,7 @@ async fn a_fake_hololens_streaming_h264_is_decoded_by_the_bridge() {
 /// message queue; everything checked.
 async fn bridge_session(codec_args: &[&str]) {
     let h264 = !codec_args.is_empty();
+    let holograms_of_the_field = h264;
     let tmp = tempfile::tempdir().expect("tmp");
     let frames = 40;
     // HoloLens 2 geometry on a moving head: a pose located off mid-exposure is another pose.
@@ -231,6 +233,12 @@ async fn bridge_session(codec_args: &[&str]) {
     let server = TestServer::start(ServerOptions {
         record_dir: Some(record.clone()),
         config: config.clone(),
+        // Fields from the first refined frame on, ten a second: 40 frames are 1.3 s.
+        field: mrptv::server::FieldOptions {
+            cell_m: Some(0.05),
+            interval: std::time::Duration::from_millis(100),
+            ..Default::default()
+        },
         ..Default::default()
     })
     .await;
@@ -250,7 +258,6 @@ async fn bridge_session(codec_args: &[&str]) {
         "--out".into(),
         live.display().to_string(),
         "--json".into(),
-        "--holograms".into(),
         "--mq-port".into(),
         mq_port.to_string(),
         "--hologram-arrows".into(),
@@ -260,6 +267,11 @@ async fn bridge_session(codec_args: &[&str]) {
     ]
     .into_iter()
     .chain(codec_args.iter().map(|a| a.to_string()))
+    .chain(if holograms_of_the_field {
+        vec!["--holograms".to_string(), "field".into()]
+    } else {
+        vec!["--holograms".to_string()]
+    })
     .collect::<Vec<String>>();
     let started = std::time::Instant::now();
     let out = tokio::task::spawn_blocking(move || {

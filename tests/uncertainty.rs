@@ -116,12 +116,7 @@ fn field_against_truth(
     let mut measured = FieldGrid::new(cell_m, None).expect("grid");
     let mut truth = FieldGrid::new(cell_m, None).expect("grid");
     for r in &run.tracks {
-        let sample = FieldSample {
-            t_s: r.t_s,
-            track_id: r.track_id,
-            position: r.position,
-            velocity: r.velocity,
-        };
+        let sample = FieldSample::from(r);
         measured.add(sample);
         truth.add(FieldSample {
             velocity: spec.flow.velocity(&r.position, r.t_s),

@@ -176,12 +176,7 @@ fn write_field(path: &Path, cell_m: Option<f64>, rows: &[TrackRow]) -> Result<Ve
     };
     let mut grid = FieldGrid::new(cell_m, None)?;
     for r in rows {
-        grid.add(FieldSample {
-            t_s: r.t_s,
-            track_id: r.track_id,
-            position: r.position,
-            velocity: r.velocity,
-        });
+        grid.add(FieldSample::from(r));
     }
     let cells: Vec<_> = grid.cells().collect();
     let mut file = create_output(path)?;

@@ -553,6 +553,85 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    /// The stated velocity and position sigmas of a quadratic and a line agree with the scatter
+    /// of their estimates over many noisy draws of the same path (Monte Carlo, 4000 draws: the
+    /// standard deviation is known to about 1.1 %, so 5 % is a tight bound).
+    #[test]
+    fn stated_sigmas_match_the_scatter_of_repeated_fits() {
+        let sigma = 0.002;
+        let times: Vec<f64> = (-5..=5).map(|k| f64::from(k) / 30.0).collect();
+        let path = |t: f64| Point3::new(0.1 + 0.5 * t + 2.0 * t * t, -0.2 * t, 1.0 + 0.3 * t);
+        let mut rng = crate::synth::Rng::new(11);
+        type Fit = fn(&[(f64, Point3<f64>)], f64) -> Option<MotionFit>;
+        for (name, fit, truth_velocity) in [
+            (
+                "quadratic",
+                fit_quadratic as Fit,
+                Vector3::new(0.5, -0.2, 0.3),
+            ),
+            ("line", fit_line as Fit, Vector3::new(0.5, -0.2, 0.3)),
+        ] {
+            let (mut velocities, mut positions, mut stated) = (Vec::new(), Vec::new(), Vec::new());
+            for _ in 0..4000 {
+                let samples: Vec<(f64, Point3<f64>)> = times
+                    .iter()
+                    .map(|&t| {
+                        let noise = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+                        (t, path(t) + noise)
+                    })
+                    .collect();
+                let f = fit(&samples, 0.0).expect("fits");
+                velocities.push(f.velocity.x);
+                positions.push(f.position.x);
+                // The noise the fit is told, not its own estimate: the gains are under test.
+                let known = FitError {
+                    noise_variance: Vector3::repeat(sigma * sigma),
+                    noise_dof: 1e9,
+                    ..f.error
+                };
+                stated.push(known.sigmas(None));
+            }
+            let std = |v: &[f64]| {
+                let mean = v.iter().sum::<f64>() / v.len() as f64;
+                (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+            };
+            let (sv, sp) = stated[0];
+            let ratio_v = std(&velocities) / sv.x;
+            let ratio_p = std(&positions) / sp.x;
+            assert!(
+                (ratio_v - 1.0).abs() < 0.05,
+                "{name}: velocity scatter / stated {ratio_v}"
+            );
+            assert!(
+                (ratio_p - 1.0).abs() < 0.05,
+                "{name}: position scatter / stated {ratio_p}"
+            );
+            if name == "quadratic" {
+                // The quadratic is unbiased on a quadratic path.
+                let mean = velocities.iter().sum::<f64>() / velocities.len() as f64;
+                assert!((mean - truth_velocity.x).abs() < 3.0 * sv.x / 60.0);
+            }
+        }
+    }
+
+    #[test]
+    fn a_pooled_noise_counts_in_proportion_to_its_degrees_of_freedom() {
+        let error = FitError {
+            noise_variance: Vector3::new(4.0, 4.0, 4.0),
+            noise_dof: 10.0,
+            velocity_gain: Vector3::repeat(1.0),
+            position_gain: Vector3::repeat(0.25),
+            velocity_bias_sq: Vector3::new(0.0, 9.0, 0.0),
+        };
+        let (v, p) = error.sigmas(Some((Vector3::repeat(1.0), 30.0)));
+        // (10 * 4 + 30 * 1) / 40 = 1.75.
+        assert!((v.x - 1.75f64.sqrt()).abs() < 1e-12);
+        assert!((v.y - (1.75f64 + 9.0).sqrt()).abs() < 1e-12, "bias adds");
+        assert!((p.x - (0.25 * 1.75f64).sqrt()).abs() < 1e-12);
+        let (alone, _) = error.sigmas(None);
+        assert!((alone.x - 2.0).abs() < 1e-12);
+    }
+
     const TEST: NeighbourTest = NeighbourTest {
         neighbours: 8,
         threshold: 4.0,

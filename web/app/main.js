@@ -451,10 +451,18 @@ function redraw(now) {
   points.geometry.setDrawRange(0, n);
   state.drawChecksum = checksum;
   drawTrails();
-  drawField(speedMax, tau, minWidth);
+  drawField(speedMax);
 }
 
-function drawField(speedMax, tau, minWidth) {
+/** The median of the cells' mean speeds (0 without cells). */
+function medianCellSpeed(fields) {
+  const speeds = [];
+  for (const field of fields) for (const c of field.cells) speeds.push(Math.hypot(c.u, c.v, c.w));
+  speeds.sort((a, b) => a - b);
+  return speeds.length ? speeds[Math.floor(speeds.length / 2)] : 0;
+}
+
+function drawField(speedMax) {
   let total = 0;
   if (state.showField) for (const field of state.fields.values()) total += field.cells.length;
   if (total > fieldArrows.instanceMatrix.count) {
@@ -464,7 +472,13 @@ function drawField(speedMax, tau, minWidth) {
   }
   let n = 0;
   if (state.showField) {
-    for (const field of state.fields.values()) {
+    const fields = [...state.fields.values()];
+    // Arrows sized to their cells, not to the live vectors' time scale: a cell of the median
+    // speed gets an arrow 0.8 of its side, so neighbouring cells' arrows do not overlap.
+    const median = medianCellSpeed(fields);
+    for (const field of fields) {
+      const tau = median > 0 ? (0.8 * field.cellM) / median : 0;
+      const width = 0.6 * field.cellM;
       for (const cell of field.cells) {
         tmp.p.set(cell.x, cell.y, cell.z);
         tmp.d.set(cell.u, cell.v, cell.w);
@@ -472,8 +486,6 @@ function drawField(speedMax, tau, minWidth) {
         const length = Math.max(speed * tau, 1e-6);
         if (speed > 0) tmp.q.setFromUnitVectors(tmp.up, tmp.d.divideScalar(speed));
         else tmp.q.identity();
-        // Thicker than the live arrows, so the field reads apart from them.
-        const width = 1.8 * Math.max(length, minWidth);
         tmp.s.set(width, length, width);
         tmp.m.compose(tmp.p, tmp.q, tmp.s);
         fieldArrows.setMatrixAt(n, tmp.m);
@@ -738,6 +750,8 @@ window.mrptv = {
     arrows: arrows.count,
     fieldArrows: fieldArrows.count,
     fieldCells: [...state.fields.values()].reduce((sum, f) => sum + f.cells.length, 0),
+    fieldSamples: [...state.fields.values()].reduce((sum, f) => sum + f.samples, 0),
+    sigmasSeen: [...state.latest.values()].some(({ batch }) => batch.sigmas !== null),
     fieldMessages: state.fieldMessages,
     trailVertices: trails.geometry.drawRange.count,
     batchesDrawn: state.batchesDrawn,

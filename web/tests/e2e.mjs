@@ -144,6 +144,21 @@ try {
     await page.selectOption('#kind', 'causal');
     await page.waitForTimeout(500);
     await page.screenshot({ path: join(args.artifacts, secure ? 'page-https.png' : 'page.png') });
+    // Uncertainties asked for and received (uncertain arrows are drawn lighter).
+    assert.equal((await page.evaluate(() => window.mrptv.stats())).sigmasSeen, true, 'batches carry sigmas');
+    // Field mode: the session's mean-flow field next to the live vectors.
+    await page.check('#field');
+    const field = await poll(page, 'field arrows', (s) => s.fieldArrows > 0 && s.fieldArrows === s.fieldCells);
+    const fieldPixels = await probeUntil(page, 'field and live arrows on screen', (p) => p.arrowPixels > 500);
+    assert.match(await page.textContent('#hud-field'), /cells of [0-9.]+ m, [0-9]+ samples/);
+    await page.screenshot({ path: join(args.artifacts, secure ? 'page-field-https.png' : 'page-field.png') });
+    // Reset: the field starts again from few samples.
+    const grown = await poll(page, 'a grown field', (s) => s.fieldSamples > field.fieldSamples);
+    await page.click('#reset-field');
+    const restarted = await poll(page, 'a field restarted by the reset', (s) => s.fieldSamples < grown.fieldSamples);
+    await page.uncheck('#field');
+    await poll(page, 'field hidden', (s) => s.fieldArrows === 0);
+    report.field = { cells: field.fieldCells, samples: grown.fieldSamples, afterReset: restarted.fieldSamples, pixels: fieldPixels };
     report.flat = { ...(await page.evaluate(() => window.mrptv.stats())), hud, pixels };
     assert.deepEqual(problems, [], 'no console errors, failed requests or HTTP errors');
     await context.close();

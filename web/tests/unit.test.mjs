@@ -2,7 +2,7 @@
 import assert from 'node:assert/strict';
 import { readFileSync } from 'node:fs';
 import { test } from 'node:test';
-import { decodeBatch, BatchError, KIND_CAUSAL, KIND_REFINED } from '../app/protocol.js';
+import { decodeBatch, BatchError, fieldCells, KIND_CAUSAL, KIND_REFINED } from '../app/protocol.js';
 import { speedColor, niceCeiling } from '../app/colormap.js';
 import { Placement } from '../app/placement.js';
 
@@ -84,4 +84,23 @@ test('the volume is centred on the anchor and fitted to the view, or drawn at tr
   assert.ok(Math.abs(corner[0] - 1) < 1e-9, 'one metre stays one metre');
   p.reset();
   assert.equal(p.fixed, false);
+});
+
+test('a batch with uncertainties carries them after the records', () => {
+  const b = decodeBatch(golden('batch-refined-sigmas-webxr.bin'));
+  assert.equal(b.count, 2);
+  assert.equal(b.sigmas.length, 6);
+  assert.deepEqual(Array.from(b.sigmas), [0.0010000000474974513, 0.0020000000949949026, 0.0078125, 0.0005000000237487257, 0.0005000000237487257, 0.00390625]);
+  assert.equal(decodeBatch(golden('batch-causal-unity.bin')).sigmas, null);
+});
+
+test('field messages are read by their column names', () => {
+  const message = JSON.parse(readFileSync(new URL('../../protocol/golden/server-field.json', import.meta.url), 'utf8'));
+  const cells = fieldCells(message);
+  assert.equal(cells.length, 2);
+  assert.deepEqual(cells[0], { x: 0.025, y: -0.125, z: -0.475, n: 42, u: 0.25, v: 0, w: -0.125 });
+  // Columns added later, or reordered, do not move what the page reads.
+  const reordered = { ...message, columns: ['n', ...message.columns.filter((c) => c !== 'n')], cells: message.cells.map((r) => [r[3], ...r.filter((_, i) => i !== 3)]) };
+  assert.deepEqual(fieldCells(reordered)[1], fieldCells(message)[1]);
+  assert.deepEqual(fieldCells({ columns: ['x'], cells: [[1]] }), []);
 });
