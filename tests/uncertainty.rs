@@ -89,8 +89,8 @@ fn velocity_uncertainties_are_calibrated_on_raw_hololens_geometry() {
 }
 
 /// Turbulence falls short of the band: 79-83 % of the vectors lie within 2 sigma (the issue asks
-/// for 90 %), 48-52 % within 1 sigma. The core of its errors is about 1.5 times what the noise
-/// and the cubic term's bias explain; tried and not the cause: the pooled noise's weight, the
+/// for 90 %), 49-52 % within 1 sigma. The core of its errors is about 1.5 times what the noise
+/// and the modelled biases explain; tried and not the cause: the pooled noise's weight, the
 /// cubic bias (even 16 times it moved coverage by 2 points), the line fit and narrowed windows.
 /// Bounded at what is reached, so a regression shows; the README states the gap.
 #[test]

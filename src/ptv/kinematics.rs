@@ -316,6 +316,7 @@ pub fn fit_adaptive(
     let mut velocity = Vector3::zeros();
     let (mut velocity_gain, mut position_gain) = (Vector3::zeros(), Vector3::zeros());
     let mut velocity_bias_sq = Vector3::zeros();
+    let turning = turning_rate_sq(reference_quadratic, &cubic);
     let mut choice = [FitChoice {
         half_window_frames: widest.half_window_frames as u8,
         order: 3,
@@ -339,10 +340,15 @@ pub fn fit_adaptive(
         // unless plainly significant, is better taken as zero; as an uncertainty its unbiased
         // estimate counts (ignoring it understated turbulence's errors several-fold).
         let d2_stated = (d * d - d_variance).max(0.0);
+        // A path turning at rate w has a fifth derivative of w^4 times its velocity (exactly so
+        // on a circle), which no candidate here models: stated as each fit's bias from it.
+        let fifth_term = turning * turning * reference_quadratic.velocity(c) / 120.0;
         // (expected squared error, position, velocity, velocity and position gains, squared
         // bias stated)
         let candidate = |fit: &PolynomialFit, bias_sq: f64, bias_sq_stated: f64| {
             let (velocity_gain, position_gain) = fit.gains();
+            let bias_sq_stated =
+                bias_sq_stated + (fit.velocity_bias_per_term(5) * fifth_term).powi(2);
             (
                 bias_sq + fit.velocity_variance(sigma2),
                 fit.position(c),
@@ -398,6 +404,26 @@ pub fn fit_adaptive(
     }
     .finite()
     .map(|fit| AdaptiveFit { fit, choice })
+}
+
+/// The square of the rate at which the path turns (or changes speed), per second: its
+/// acceleration over its speed, from the widest quadratic's terms with their noise taken out
+/// (`noise` gives the sample noise); 0 where the path is straight or at rest.
+fn turning_rate_sq(quadratic: &PolynomialFit, noise: &PolynomialFit) -> f64 {
+    let sigma2 = noise.noise_variance();
+    let mut acceleration_sq = 0.0;
+    let mut speed_sq = 0.0;
+    for c in 0..3 {
+        if let Some((q, q_variance)) = quadratic.quadratic_term(c, sigma2[c]) {
+            acceleration_sq += 4.0 * (q * q - q_variance).max(0.0);
+        }
+        speed_sq += quadratic.velocity(c).powi(2);
+    }
+    if speed_sq > 0.0 {
+        acceleration_sq / speed_sq
+    } else {
+        0.0
+    }
 }
 
 /// Least-squares straight line through `samples`, evaluated at `t_eval_s`: a lower-noise
