@@ -48,6 +48,7 @@ pub struct FitError {
     pub velocity_gain: Vector3<f64>,
     pub position_gain: Vector3<f64>,
     pub velocity_bias_sq: Vector3<f64>,
+    pub position_bias_sq: Vector3<f64>,
 }
 
 impl FitError {
@@ -64,7 +65,9 @@ impl FitError {
         let velocity = Vector3::from_fn(|c, _| {
             (self.velocity_gain[c] * noise[c] + self.velocity_bias_sq[c]).sqrt()
         });
-        let position = Vector3::from_fn(|c, _| (self.position_gain[c] * noise[c]).sqrt());
+        let position = Vector3::from_fn(|c, _| {
+            (self.position_gain[c] * noise[c] + self.position_bias_sq[c]).sqrt()
+        });
         (velocity, position)
     }
 }
@@ -141,9 +144,20 @@ impl PolynomialFit {
     /// bias this fit has where the path has that term and the fit's order does not reach it
     /// (power 3 for a quadratic, 2 and 3 for a line).
     fn velocity_bias_per_term(&self, power: i32) -> f64 {
+        self.bias_per_term(1, power)
+    }
+
+    /// The same for the position (the fit's value at the evaluation time).
+    fn position_bias_per_term(&self, power: i32) -> f64 {
+        self.bias_per_term(0, power)
+    }
+
+    /// How much of a term `d (t - t_eval)^power` coefficient `k` (0: position, 1: velocity)
+    /// absorbs per unit of `d`, in the coefficient's own units.
+    fn bias_per_term(&self, k: usize, power: i32) -> f64 {
         let powers = self.design.column(1).map(|tau| tau.powi(power));
-        let absorbed = (&self.inverse_normal * self.design.transpose() * powers)[(1, 0)];
-        absorbed * self.scale_s.powi(power - 1)
+        let absorbed = (&self.inverse_normal * self.design.transpose() * powers)[(k, 0)];
+        absorbed * self.scale_s.powi(power - k as i32)
     }
 
     /// The quadratic coefficient (half the acceleration) of component `c` and its variance for
@@ -190,6 +204,7 @@ impl PolynomialFit {
             velocity_gain: Vector3::repeat(velocity_gain),
             position_gain: Vector3::repeat(position_gain),
             velocity_bias_sq: Vector3::zeros(),
+            position_bias_sq: Vector3::zeros(),
         }
     }
 
@@ -316,6 +331,7 @@ pub fn fit_adaptive(
     let mut velocity = Vector3::zeros();
     let (mut velocity_gain, mut position_gain) = (Vector3::zeros(), Vector3::zeros());
     let mut velocity_bias_sq = Vector3::zeros();
+    let mut position_bias_sq = Vector3::zeros();
     let turning = turning_rate_sq(reference_quadratic, &cubic);
     let mut choice = [FitChoice {
         half_window_frames: widest.half_window_frames as u8,
@@ -343,12 +359,21 @@ pub fn fit_adaptive(
         // A path turning at rate w has a fifth derivative of w^4 times its velocity (exactly so
         // on a circle), which no candidate here models: stated as each fit's bias from it.
         let fifth_term = turning * turning * reference_quadratic.velocity(c) / 120.0;
+        // The position's: the acceleration (half of it: a line's), the cubic term, and the
+        // fourth-order term of a turning path (w^2 times its acceleration, on a circle).
+        let half_acceleration_sq = reference_quadratic
+            .quadratic_term(c, sigma2)
+            .map_or(0.0, |(q, q_variance)| (q * q - q_variance).max(0.0));
+        let fourth_term_sq = turning * turning * 4.0 * half_acceleration_sq / (24.0 * 24.0);
         // (expected squared error, position, velocity, velocity and position gains, squared
-        // bias stated)
+        // velocity and position biases stated)
         let candidate = |fit: &PolynomialFit, bias_sq: f64, bias_sq_stated: f64| {
             let (velocity_gain, position_gain) = fit.gains();
             let bias_sq_stated =
                 bias_sq_stated + (fit.velocity_bias_per_term(5) * fifth_term).powi(2);
+            let position_bias_sq = fit.position_bias_per_term(2).powi(2) * half_acceleration_sq
+                + fit.position_bias_per_term(3).powi(2) * d2_stated
+                + fit.position_bias_per_term(4).powi(2) * fourth_term_sq;
             (
                 bias_sq + fit.velocity_variance(sigma2),
                 fit.position(c),
@@ -356,6 +381,7 @@ pub fn fit_adaptive(
                 velocity_gain,
                 position_gain,
                 bias_sq_stated,
+                position_bias_sq,
             )
         };
         let mut best = candidate(&cubic, 0.0, 0.0);
@@ -389,6 +415,7 @@ pub fn fit_adaptive(
         velocity_gain[c] = best.3;
         position_gain[c] = best.4;
         velocity_bias_sq[c] = best.5;
+        position_bias_sq[c] = best.6;
     }
     MotionFit {
         position: Point3::from(position),
@@ -400,6 +427,7 @@ pub fn fit_adaptive(
             velocity_gain,
             position_gain,
             velocity_bias_sq,
+            position_bias_sq,
         },
     }
     .finite()
@@ -468,6 +496,7 @@ pub fn fit_line(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<MotionF
             velocity_gain: Vector3::repeat(1.0 / stt),
             position_gain: Vector3::repeat(1.0 / n + mean_t * mean_t / stt),
             velocity_bias_sq: Vector3::zeros(),
+            position_bias_sq: Vector3::zeros(),
         },
     };
     fit.finite()
@@ -648,6 +677,7 @@ mod tests {
             velocity_gain: Vector3::repeat(1.0),
             position_gain: Vector3::repeat(0.25),
             velocity_bias_sq: Vector3::new(0.0, 9.0, 0.0),
+            position_bias_sq: Vector3::zeros(),
         };
         let (v, p) = error.sigmas(Some((Vector3::repeat(1.0), 30.0)));
         // (10 * 4 + 30 * 1) / 40 = 1.75.
