@@ -6,7 +6,7 @@
 //! with 200 and 1000 particles in view.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use mrptv::protocol::{Convention, FieldMessage, ServerMessage, FIELD_COLUMNS};
+use mrptv::protocol::{Convention, FieldMessage, ServerMessage};
 use mrptv::ptv::field::{CellSummary, StreamField};
 use mrptv::ptv::{ImageView, Pipeline, PipelineConfig, StereoFrame, VelocityVector};
 use mrptv::synth::{Scenario, ScenarioSpec, Synthesizer};
@@ -71,18 +71,14 @@ fn benches(c: &mut Criterion) {
                     return 0;
                 };
                 let cells: Vec<CellSummary> = grid.cells().collect();
-                ServerMessage::Field(Box::new(FieldMessage {
-                    session: "s1".into(),
-                    convention: Convention::WebXr,
-                    frame_index: index,
-                    t_s: index as f64 / 30.0,
-                    cell_m: grid.cell_m(),
-                    window_s: None,
-                    samples: grid.samples_added(),
-                    truncated: false,
-                    columns: FIELD_COLUMNS.iter().map(|c| c.to_string()).collect(),
-                    cells: FieldMessage::rows(&cells, Convention::WebXr),
-                }))
+                ServerMessage::Field(Box::new(FieldMessage::new(
+                    "s1".into(),
+                    (index, index as f64 / 30.0),
+                    grid,
+                    &cells,
+                    false,
+                    Convention::WebXr,
+                )))
                 .to_json()
                 .len()
             })

@@ -111,7 +111,7 @@ pub struct Coverage {
     pub velocity_within_2_sigma: Xyz,
     pub position_within_1_sigma: Xyz,
     pub position_within_2_sigma: Xyz,
-    /// Median stated velocity sigma over the median speed: how large the uncertainties are.
+    /// Median stated velocity sigma per component: how large the uncertainties are.
     pub median_velocity_sigma_m_per_s: Xyz,
 }
 
@@ -124,31 +124,33 @@ fn coverage(associations: &[Association]) -> Option<Coverage> {
         return None;
     }
     let n = with_sigma.len() as f64;
-    let within = |k: f64, error: &dyn Fn(&Association) -> Vector3<f64>, velocity: bool| {
+    type Row<'a> = (&'a Association, Vector3<f64>, Vector3<f64>);
+    // A row's error and stated sigma, of the velocity or of the position.
+    type Pick = fn(&Row) -> (Vector3<f64>, Vector3<f64>);
+    let within = |k: f64, pick: Pick| {
         let mut count = Vector3::zeros();
-        for (a, sv, sp) in &with_sigma {
-            let sigma = if velocity { sv } else { sp };
-            let e = error(a);
+        for row in &with_sigma {
+            let (error, sigma) = pick(row);
             for c in 0..3 {
-                if e[c].abs() <= k * sigma[c] {
+                if error[c].abs() <= k * sigma[c] {
                     count[c] += 1.0;
                 }
             }
         }
         Xyz::from(count / n)
     };
-    let velocity_error = |a: &Association| a.row.velocity - a.truth.velocity;
-    let position_error = |a: &Association| a.row.position - a.truth.position;
+    let velocity: Pick = |(a, sv, _)| (a.row.velocity - a.truth.velocity, *sv);
+    let position: Pick = |(a, _, sp)| (a.row.position - a.truth.position, *sp);
     let median_sigma = Vector3::from_fn(|c, _| {
         let mut values: Vec<f64> = with_sigma.iter().map(|(_, sv, _)| sv[c]).collect();
         crate::ptv::link::median(&mut values)
     });
     Some(Coverage {
         rows: with_sigma.len(),
-        velocity_within_1_sigma: within(1.0, &velocity_error, true),
-        velocity_within_2_sigma: within(2.0, &velocity_error, true),
-        position_within_1_sigma: within(1.0, &position_error, false),
-        position_within_2_sigma: within(2.0, &position_error, false),
+        velocity_within_1_sigma: within(1.0, velocity),
+        velocity_within_2_sigma: within(2.0, velocity),
+        position_within_1_sigma: within(1.0, position),
+        position_within_2_sigma: within(2.0, position),
         median_velocity_sigma_m_per_s: Xyz::from(median_sigma),
     })
 }
@@ -437,42 +439,43 @@ impl fmt::Display for Report {
             )?;
         }
         if let Some(c) = &self.uncertainty {
-            let (v1, v2) = (&c.velocity_within_1_sigma, &c.velocity_within_2_sigma);
-            let (p1, p2) = (&c.position_within_1_sigma, &c.position_within_2_sigma);
             let s = &c.median_velocity_sigma_m_per_s;
             writeln!(
                 f,
                 "stated uncertainty ({} vectors; Gaussian: 68.3 % within 1 sigma, 95.4 % within 2)",
                 c.rows
             )?;
-            writeln!(
-                f,
-                "  velocity within 1 sigma  u {}  v {}  w {}",
-                pct(v1.x),
-                pct(v1.y),
-                pct(v1.z)
-            )?;
-            writeln!(
-                f,
-                "  velocity within 2 sigma  u {}  v {}  w {}",
-                pct(v2.x),
-                pct(v2.y),
-                pct(v2.z)
-            )?;
-            writeln!(
-                f,
-                "  position within 1 sigma  x {}  y {}  z {}",
-                pct(p1.x),
-                pct(p1.y),
-                pct(p1.z)
-            )?;
-            writeln!(
-                f,
-                "  position within 2 sigma  x {}  y {}  z {}",
-                pct(p2.x),
-                pct(p2.y),
-                pct(p2.z)
-            )?;
+            for (what, axes, v) in [
+                (
+                    "velocity within 1 sigma",
+                    ["u", "v", "w"],
+                    &c.velocity_within_1_sigma,
+                ),
+                (
+                    "velocity within 2 sigma",
+                    ["u", "v", "w"],
+                    &c.velocity_within_2_sigma,
+                ),
+                (
+                    "position within 1 sigma",
+                    ["x", "y", "z"],
+                    &c.position_within_1_sigma,
+                ),
+                (
+                    "position within 2 sigma",
+                    ["x", "y", "z"],
+                    &c.position_within_2_sigma,
+                ),
+            ] {
+                let [a, b, d] = axes;
+                writeln!(
+                    f,
+                    "  {what}  {a} {}  {b} {}  {d} {}",
+                    pct(v.x),
+                    pct(v.y),
+                    pct(v.z)
+                )?;
+            }
             writeln!(
                 f,
                 "  median velocity sigma    u {:.5}  v {:.5}  w {:.5} m/s",

@@ -5,7 +5,7 @@
 //! Binary layouts are little-endian, fixed headers, no padding surprises: every offset below is
 //! the one in the spec, and `protocol/golden/` holds example messages the tests decode.
 
-use nalgebra::{Isometry3, Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{isometry_from_row_major, isometry_to_row_major, RigFile};
@@ -428,10 +428,7 @@ impl ServerMessage {
 }
 
 /// Columns of each row of a `field` message's `cells`, as in `field.csv`.
-pub const FIELD_COLUMNS: [&str; 14] = [
-    "x", "y", "z", "n", "u", "v", "w", "std_u", "std_v", "std_w", "sem_u", "sem_v", "sem_w",
-    "tracks",
-];
+pub use crate::ptv::field::FIELD_COLUMNS;
 
 /// A session's mean-flow field as viewers receive it, in their convention.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -457,6 +454,30 @@ pub struct FieldMessage {
 }
 
 impl FieldMessage {
+    /// The message of `cells` (of `grid`, the engine's OpenCV world frame; `truncated` if only
+    /// some of the grid's) as of frame `(frame_index, t_s)`, in `convention`.
+    pub fn new(
+        session: String,
+        frame: (u64, f64),
+        grid: &crate::ptv::field::FieldGrid,
+        cells: &[crate::ptv::field::CellSummary],
+        truncated: bool,
+        convention: Convention,
+    ) -> Self {
+        Self {
+            session,
+            convention,
+            frame_index: frame.0,
+            t_s: frame.1,
+            cell_m: grid.cell_m(),
+            window_s: grid.window_s(),
+            samples: grid.samples_added(),
+            truncated,
+            columns: FIELD_COLUMNS.iter().map(|c| c.to_string()).collect(),
+            cells: Self::rows(cells, convention),
+        }
+    }
+
     /// `cells` (in the engine's OpenCV world frame) as rows in `convention`: positions and
     /// mean velocities flipped, spreads unsigned.
     pub fn rows(
@@ -466,24 +487,12 @@ impl FieldMessage {
         cells
             .iter()
             .map(|c| {
-                let p = convention.flip(&c.centre.coords);
-                let m = convention.flip(&c.mean);
-                [
-                    p.x,
-                    p.y,
-                    p.z,
-                    c.samples as f64,
-                    m.x,
-                    m.y,
-                    m.z,
-                    c.std.x,
-                    c.std.y,
-                    c.std.z,
-                    c.sem.x,
-                    c.sem.y,
-                    c.sem.z,
-                    c.tracks as f64,
-                ]
+                crate::ptv::field::CellSummary {
+                    centre: Point3::from(convention.flip(&c.centre.coords)),
+                    mean: convention.flip(&c.mean),
+                    ..*c
+                }
+                .values()
             })
             .collect()
     }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::isometry_to_row_major;
-use crate::ptv::field::{CellSummary, FieldSample};
+use crate::ptv::field::{CellSummary, FieldSample, FIELD_COLUMNS};
 use crate::ptv::{MatchedPoint, VelocityVector};
 use crate::synth::TruthRow;
 
@@ -20,9 +20,6 @@ pub const TRACKS_HEADER: &str = "frame,t_s,track_id,x,y,z,u,v,w";
 /// errors of velocity (m/s) and position (m) appended.
 pub const TRACKS_HEADER_WITH_SIGMA: &str = "frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz";
 pub const POINTS_HEADER: &str = "frame,t_s,x,y,z,xl,yl,xr,yr";
-/// `field.csv`: per grid cell its centre (world frame, m), sample count, mean velocity (m/s),
-/// standard deviation and standard error of the mean per component, and distinct tracks.
-pub const FIELD_HEADER: &str = "x,y,z,n,u,v,w,std_u,std_v,std_w,sem_u,sem_v,sem_w,tracks";
 
 /// `frames.csv` header with the 16 optional pose columns.
 pub fn frames_header_with_pose() -> String {
@@ -284,13 +281,16 @@ pub fn write_track_row(out: &mut (impl Write + ?Sized), v: &VelocityVector) -> s
     )
 }
 
-pub fn write_field_row(out: &mut (impl Write + ?Sized), c: &CellSummary) -> std::io::Result<()> {
-    let (p, m, s, e) = (c.centre, c.mean, c.std, c.sem);
-    writeln!(
-        out,
-        "{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-        p.x, p.y, p.z, c.samples, m.x, m.y, m.z, s.x, s.y, s.z, e.x, e.y, e.z, c.tracks
-    )
+/// `field.csv`: the header (`FIELD_COLUMNS`: per grid cell its centre, world frame, m; sample
+/// count; mean velocity, m/s; standard deviation and standard error of the mean per component;
+/// distinct tracks), then a row per cell.
+pub fn write_field(out: &mut (impl Write + ?Sized), cells: &[CellSummary]) -> std::io::Result<()> {
+    writeln!(out, "{}", FIELD_COLUMNS.join(","))?;
+    for c in cells {
+        let row: Vec<String> = c.values().iter().map(|v| v.to_string()).collect();
+        writeln!(out, "{}", row.join(","))?;
+    }
+    Ok(())
 }
 
 pub fn write_point_row(

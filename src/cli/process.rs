@@ -182,13 +182,7 @@ fn write_field(path: &Path, cell_m: Option<f64>, rows: &[TrackRow]) -> Result<Ve
     let mut file = create_output(path)?;
     let written: Result<()> = match VtkFormat::of(path) {
         Some(format) => vtk::write_field(&mut file, format, &cells).map_err(Into::into),
-        None => (|| {
-            writeln!(file, "{}", tables::FIELD_HEADER)?;
-            for c in &cells {
-                tables::write_field_row(&mut file, c)?;
-            }
-            Ok(())
-        })(),
+        None => tables::write_field(&mut file, &cells).map_err(Into::into),
     };
     written
         .and_then(|()| Ok(file.flush()?))

@@ -59,6 +59,36 @@ pub struct CellSummary {
     pub sem: Vector3<f64>,
 }
 
+/// The names of a cell's numbers, in the order of [`CellSummary::values`]: `field.csv`'s header
+/// and the rows of a `field` message.
+pub const FIELD_COLUMNS: [&str; 14] = [
+    "x", "y", "z", "n", "u", "v", "w", "std_u", "std_v", "std_w", "sem_u", "sem_v", "sem_w",
+    "tracks",
+];
+
+impl CellSummary {
+    /// The cell's numbers in [`FIELD_COLUMNS`] order.
+    pub fn values(&self) -> [f64; 14] {
+        let (p, m, s, e) = (self.centre, self.mean, self.std, self.sem);
+        [
+            p.x,
+            p.y,
+            p.z,
+            self.samples as f64,
+            m.x,
+            m.y,
+            m.z,
+            s.x,
+            s.y,
+            s.z,
+            e.x,
+            e.y,
+            e.z,
+            self.tracks as f64,
+        ]
+    }
+}
+
 /// Sums of one cell's samples, kept about a reference velocity (the cell's first sample) so the
 /// variance does not lose its digits to a large mean.
 #[derive(Debug, Clone)]

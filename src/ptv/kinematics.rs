@@ -140,24 +140,25 @@ impl PolynomialFit {
         sigma2 * self.inverse_normal[(1, 1)] / (self.scale_s * self.scale_s)
     }
 
-    /// How much of a term `d (t - t_eval)^power` the velocity absorbs, per unit of `d`: the
-    /// bias this fit has where the path has that term and the fit's order does not reach it
-    /// (power 3 for a quadratic, 2 and 3 for a line).
-    fn velocity_bias_per_term(&self, power: i32) -> f64 {
-        self.bias_per_term(1, power)
-    }
-
-    /// The same for the position (the fit's value at the evaluation time).
-    fn position_bias_per_term(&self, power: i32) -> f64 {
-        self.bias_per_term(0, power)
-    }
-
-    /// How much of a term `d (t - t_eval)^power` coefficient `k` (0: position, 1: velocity)
-    /// absorbs per unit of `d`, in the coefficient's own units.
-    fn bias_per_term(&self, k: usize, power: i32) -> f64 {
-        let powers = self.design.column(1).map(|tau| tau.powi(power));
-        let absorbed = (&self.inverse_normal * self.design.transpose() * powers)[(k, 0)];
-        absorbed * self.scale_s.powi(power - k as i32)
+    /// What this fit's velocity and position make of noise and of the path terms it does not
+    /// model: fixed by its sample times alone, so worked out once per fit.
+    fn sensitivity(&self) -> Sensitivity {
+        let (velocity_gain, position_gain) = self.gains();
+        let weights = &self.inverse_normal * self.design.transpose();
+        let mut velocity_per_term = [0.0; 6];
+        let mut position_per_term = [0.0; 6];
+        for power in 2..=5 {
+            let powers = self.design.column(1).map(|tau| tau.powi(power));
+            let absorbed = &weights * powers;
+            velocity_per_term[power as usize] = absorbed[(1, 0)] * self.scale_s.powi(power - 1);
+            position_per_term[power as usize] = absorbed[(0, 0)] * self.scale_s.powi(power);
+        }
+        Sensitivity {
+            velocity_gain,
+            position_gain,
+            velocity_per_term,
+            position_per_term,
+        }
     }
 
     /// The quadratic coefficient (half the acceleration) of component `c` and its variance for
@@ -217,6 +218,16 @@ impl PolynomialFit {
             error: self.error(),
         }
     }
+}
+
+/// A fit's velocity and position variances per unit of sample noise variance, and how much of a
+/// path term `d (t - t_eval)^p` each absorbs per unit of `d` (index `p`, 2 to 5; 0 where the
+/// fit's order reaches the term): the bias the fit has where the path has that term.
+struct Sensitivity {
+    velocity_gain: f64,
+    position_gain: f64,
+    velocity_per_term: [f64; 6],
+    position_per_term: [f64; 6],
 }
 
 /// A candidate window of a track, fitted once with the method's quadratic (centred on the
@@ -311,20 +322,21 @@ pub fn fit_adaptive(
             return widest_quadratic.fit.finite().map(|_| widest_quadratic);
         }
     };
-    let quadratics: Vec<(usize, &PolynomialFit, f64)> = windows
+    let cubic_sensitivity = cubic.sensitivity();
+    let quadratics: Vec<(usize, &PolynomialFit, Sensitivity)> = windows
         .iter()
         .map(|w| {
-            let bias = w.quadratic.velocity_bias_per_term(3);
-            (w.half_window_frames, &w.quadratic, bias)
+            (
+                w.half_window_frames,
+                &w.quadratic,
+                w.quadratic.sensitivity(),
+            )
         })
         .collect();
     let past_line = past.and_then(|p| {
         let line = PolynomialFit::new(&p.samples, t_eval_s, 1)?;
-        let (b2, b3) = (
-            line.velocity_bias_per_term(2),
-            line.velocity_bias_per_term(3),
-        );
-        Some((p, line, b2, b3))
+        let sensitivity = line.sensitivity();
+        Some((p, line, sensitivity))
     });
     let dof = (cubic.samples - 4) as f64;
     let mut position = Vector3::zeros();
@@ -367,42 +379,51 @@ pub fn fit_adaptive(
         let fourth_term_sq = turning * turning * 4.0 * half_acceleration_sq / (24.0 * 24.0);
         // (expected squared error, position, velocity, velocity and position gains, squared
         // velocity and position biases stated)
-        let candidate = |fit: &PolynomialFit, bias_sq: f64, bias_sq_stated: f64| {
-            let (velocity_gain, position_gain) = fit.gains();
-            let bias_sq_stated =
-                bias_sq_stated + (fit.velocity_bias_per_term(5) * fifth_term).powi(2);
-            let position_bias_sq = fit.position_bias_per_term(2).powi(2) * half_acceleration_sq
-                + fit.position_bias_per_term(3).powi(2) * d2_stated
-                + fit.position_bias_per_term(4).powi(2) * fourth_term_sq;
-            (
-                bias_sq + fit.velocity_variance(sigma2),
-                fit.position(c),
-                fit.velocity(c),
-                velocity_gain,
-                position_gain,
-                bias_sq_stated,
-                position_bias_sq,
-            )
-        };
-        let mut best = candidate(&cubic, 0.0, 0.0);
-        for (m, fit, bias) in &quadratics {
+        let candidate =
+            |fit: &PolynomialFit, sensitivity: &Sensitivity, bias_sq: f64, bias_sq_stated: f64| {
+                let (velocity_bias, position_bias) = (
+                    &sensitivity.velocity_per_term,
+                    &sensitivity.position_per_term,
+                );
+                let bias_sq_stated = bias_sq_stated + (velocity_bias[5] * fifth_term).powi(2);
+                let position_bias_sq = position_bias[2].powi(2) * half_acceleration_sq
+                    + position_bias[3].powi(2) * d2_stated
+                    + position_bias[4].powi(2) * fourth_term_sq;
+                (
+                    bias_sq + fit.velocity_variance(sigma2),
+                    fit.position(c),
+                    fit.velocity(c),
+                    sensitivity.velocity_gain,
+                    sensitivity.position_gain,
+                    bias_sq_stated,
+                    position_bias_sq,
+                )
+            };
+        let mut best = candidate(&cubic, &cubic_sensitivity, 0.0, 0.0);
+        for (m, fit, sensitivity) in &quadratics {
+            let bias = sensitivity.velocity_per_term[3];
             let expected = d2 * bias * bias + fit.velocity_variance(sigma2);
             // Ties go to the quadratic (the method's fit), then to the wider window.
             if expected <= best.0 {
-                best = candidate(fit, d2 * bias * bias, d2_stated * bias * bias);
+                best = candidate(fit, sensitivity, d2 * bias * bias, d2_stated * bias * bias);
                 choice[c] = FitChoice {
                     half_window_frames: *m as u8,
                     order: 2,
                 };
             }
         }
-        if let Some((past, line, b2, b3)) = &past_line {
+        if let Some((past, line, sensitivity)) = &past_line {
             if let Some((q, q_variance)) = past.quadratic.quadratic_term(c, sigma2) {
                 // The acceleration's square, its own noise taken out (unbiased, floored at 0).
                 let q2 = (q * q - q_variance).max(0.0);
+                let (b2, b3) = (
+                    sensitivity.velocity_per_term[2],
+                    sensitivity.velocity_per_term[3],
+                );
                 let bias_sq = q2 * b2 * b2 + d2 * b3 * b3;
                 if bias_sq + line.velocity_variance(sigma2) < best.0 {
-                    best = candidate(line, bias_sq, q2 * b2 * b2 + d2_stated * b3 * b3);
+                    let stated = q2 * b2 * b2 + d2_stated * b3 * b3;
+                    best = candidate(line, sensitivity, bias_sq, stated);
                     choice[c] = FitChoice {
                         half_window_frames: past.half_window_frames as u8,
                         order: 1,

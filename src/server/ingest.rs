@@ -654,7 +654,7 @@ struct Worker {
 /// A session's mean-flow field: its refined vectors binned as they come, published to its
 /// viewers at most once per `FieldOptions::interval`.
 struct LiveField {
-    field: StreamField,
+    stream: StreamField,
     interval: Duration,
     max_cells: usize,
     last_published: Option<Instant>,
@@ -664,7 +664,7 @@ impl LiveField {
     fn new(options: &FieldOptions) -> Self {
         Self {
             // The options were checked when the server started.
-            field: StreamField::new(options.cell_m, options.window_s).unwrap_or_default(),
+            stream: StreamField::new(options.cell_m, options.window_s).unwrap_or_default(),
             interval: options.interval,
             max_cells: options.max_cells,
             last_published: None,
@@ -673,7 +673,7 @@ impl LiveField {
 
     /// The field to publish now, if it is time (and there is a grid).
     fn due(&mut self, shared: &SessionShared, frame: (u64, f64)) -> Option<PublishedField> {
-        let grid = self.field.grid()?;
+        let grid = self.stream.grid()?;
         if self
             .last_published
             .is_some_and(|at| at.elapsed() < self.interval)
@@ -815,9 +815,9 @@ impl Worker {
         });
         let mut sent = self.send_batch(&causal);
         if self.shared.reset_field.swap(false, Ordering::Relaxed) {
-            self.field.field.reset();
+            self.field.stream.reset();
         }
-        self.field.field.add_vectors(&output.vectors);
+        self.field.stream.add_vectors(&output.vectors);
         let field = output
             .centred_frame
             .and_then(|centre| self.field.due(&self.shared, (centre.index, centre.t_s)));
@@ -848,7 +848,8 @@ impl Worker {
         }
         if let Some(field) = field {
             if let Some(logger) = &self.rerun {
-                logger.log_field(field.frame_index, field.t_s, field.cells.clone(), false);
+                let head = &field.head;
+                logger.log_field(head.frame_index, head.t_s, field.cells.clone(), false);
             }
             let _ = self.events.send(HubEvent::Field(Arc::new(field)));
         }

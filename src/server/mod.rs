@@ -45,7 +45,7 @@ use tokio::sync::{broadcast, watch as watch_channel, Notify};
 
 use crate::protocol::{
     Batch, Convention, Counters, ErrorCode, FieldMessage, ServerMessage, SessionDescription,
-    SessionInfo, FIELD_COLUMNS, PROTOCOL_VERSION,
+    SessionInfo, PROTOCOL_VERSION,
 };
 use crate::ptv::field::{CellSummary, FieldGrid};
 use crate::ptv::PipelineConfig;
@@ -178,13 +178,8 @@ impl PublishedBatch {
 #[derive(Debug)]
 pub(crate) struct PublishedField {
     pub session_number: u32,
-    pub session: String,
-    pub frame_index: u64,
-    pub t_s: f64,
-    pub cell_m: f64,
-    pub window_s: Option<f64>,
-    pub samples: u64,
-    pub truncated: bool,
+    /// The message in OpenCV axes without its rows: each convention's is made from it.
+    pub head: FieldMessage,
     /// World frame, OpenCV axes.
     pub cells: Vec<CellSummary>,
     encoded: [OnceLock<String>; 3],
@@ -208,13 +203,7 @@ impl PublishedField {
         }
         Self {
             session_number,
-            session,
-            frame_index: frame.0,
-            t_s: frame.1,
-            cell_m: grid.cell_m(),
-            window_s: grid.window_s(),
-            samples: grid.samples_added(),
-            truncated,
+            head: FieldMessage::new(session, frame, grid, &[], truncated, Convention::OpenCv),
             cells,
             encoded: Default::default(),
         }
@@ -222,16 +211,9 @@ impl PublishedField {
 
     pub fn message(&self, convention: Convention) -> FieldMessage {
         FieldMessage {
-            session: self.session.clone(),
             convention,
-            frame_index: self.frame_index,
-            t_s: self.t_s,
-            cell_m: self.cell_m,
-            window_s: self.window_s,
-            samples: self.samples,
-            truncated: self.truncated,
-            columns: FIELD_COLUMNS.iter().map(|c| c.to_string()).collect(),
             cells: FieldMessage::rows(&self.cells, convention),
+            ..self.head.clone()
         }
     }
 
