@@ -70,39 +70,72 @@ fn assert_calibrated(name: &str, c: &Coverage) {
     assert!(c.rows > 500, "{name}: only {} vectors scored", c.rows);
 }
 
+/// Positions state their errors too: on the issue's four scenes 88-95 % of them lie within 2
+/// sigma per component (README); bounded below with a margin, so a regression shows.
+fn assert_positions_covered(name: &str, c: &Coverage) {
+    let p = &c.position_within_2_sigma;
+    for (component, fraction) in [("x", p.x), ("y", p.y), ("z", p.z)] {
+        assert!(
+            (0.85..=0.99).contains(&fraction),
+            "{name}: {component} position within 2 sigma {fraction:.3}"
+        );
+    }
+}
+
 #[test]
 fn velocity_uncertainties_are_calibrated_on_the_uniform_flow() {
     let (_, r) = run(Scenario::Uniform, 1);
-    assert_calibrated("uniform", &coverage("uniform", &r));
+    let c = coverage("uniform", &r);
+    assert_calibrated("uniform", &c);
+    assert_positions_covered("uniform", &c);
 }
 
 #[test]
 fn velocity_uncertainties_are_calibrated_with_a_moving_head() {
     let (_, r) = run(Scenario::MovingHead, 1);
-    assert_calibrated("moving-head", &coverage("moving-head", &r));
+    let c = coverage("moving-head", &r);
+    assert_calibrated("moving-head", &c);
+    assert_positions_covered("moving-head", &c);
 }
 
 #[test]
 fn velocity_uncertainties_are_calibrated_on_raw_hololens_geometry() {
     let (_, r) = run(Scenario::HololensRaw, 1);
-    assert_calibrated("hololens-raw", &coverage("hololens-raw", &r));
+    let c = coverage("hololens-raw", &r);
+    assert_calibrated("hololens-raw", &c);
+    assert_positions_covered("hololens-raw", &c);
 }
 
-/// Turbulence falls short of the band: 79-83 % of the vectors lie within 2 sigma (the issue asks
-/// for 90 %), 49-52 % within 1 sigma. The core of its errors is about 1.5 times what the noise
-/// and the modelled biases explain; tried and not the cause: the pooled noise's weight, the
-/// cubic bias (even 16 times it moved coverage by 2 points), the line fit and narrowed windows.
-/// Bounded at what is reached, so a regression shows; the README states the gap.
+/// Turbulence changes a particle's acceleration within a window: the chosen fits keep biases
+/// from the path's cubic and higher terms, which the stated sigmas count (the cubic term weighed
+/// against the scene's spread of it, the residual energy beyond the scene's noise as the
+/// higher terms). Without them 79-83 % of the vectors lay within 2 sigma.
 #[test]
-fn velocity_uncertainties_in_turbulence_are_short_of_the_band() {
+fn velocity_uncertainties_are_calibrated_in_turbulence() {
     let (_, r) = run(Scenario::Turbulence, 1);
     let c = coverage("turbulence", &r);
-    let v = &c.velocity_within_2_sigma;
-    for (component, fraction) in [("u", v.x), ("v", v.y), ("w", v.z)] {
-        assert!(
-            (0.77..=0.98).contains(&fraction),
-            "turbulence: {component} within 2 sigma {fraction:.3}"
-        );
+    assert_calibrated("turbulence", &c);
+    assert_positions_covered("turbulence", &c);
+}
+
+/// Scenes the uncertainty model was not tuned on hold the band too: a lab flume with sensor
+/// noise, a cluttered room, a toed-in lab rig, particles crossing the image in 6-10 frames, and
+/// a densely seeded tank, still and in turbulence. (Outside it, and stated in the README: the
+/// wind tunnel's u and v at 88 %, the long-lens rig's v and w at 87-88 %, the vortex's axial w
+/// at 98.5 %.)
+#[test]
+fn velocity_uncertainties_are_calibrated_on_scenes_they_were_not_tuned_on() {
+    for scenario in [
+        Scenario::Flume,
+        Scenario::Cluttered,
+        Scenario::Convergent,
+        Scenario::Fast,
+        Scenario::Seeded,
+        Scenario::SeededTurbulence,
+    ] {
+        let (spec, r) = run(scenario, 1);
+        let name = spec.scenario.name();
+        assert_calibrated(name, &coverage(name, &r));
     }
 }
 

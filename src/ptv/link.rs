@@ -612,15 +612,23 @@ fn binomial_tails(n: usize, p: f64) -> impl Iterator<Item = f64> {
     }))
 }
 
+/// The median of `values` (0 for none), which it reorders: a selection, not a sort, as the
+/// scene's pool asks for many medians each frame.
 pub(crate) fn median(values: &mut [f64]) -> f64 {
-    values.sort_by(f64::total_cmp);
     let n = values.len();
     if n == 0 {
-        0.0
-    } else if n % 2 == 1 {
-        values[n / 2]
+        return 0.0;
+    }
+    let (below, &mut upper, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
+    if n % 2 == 1 {
+        upper
     } else {
-        (values[n / 2 - 1] + values[n / 2]) / 2.0
+        let lower = below
+            .iter()
+            .copied()
+            .max_by(f64::total_cmp)
+            .unwrap_or(upper);
+        (lower + upper) / 2.0
     }
 }
 
@@ -771,6 +779,14 @@ impl SortedByX {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn median_of_odd_even_and_no_values() {
+        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert_eq!(median(&mut [5.0, 5.0, -1.0, 7.0, 5.0, 0.5]), 5.0);
+        assert_eq!(median(&mut []), 0.0);
+    }
 
     const SCALE: CostScale = CostScale {
         half_width_px: 320.0,
