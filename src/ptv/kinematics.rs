@@ -131,9 +131,7 @@ impl FitError {
         // within 2 sigma, 94.4 and 95.6 % with). Counted only where the window's noise
         // estimate is plainly above the scene's (a chi-square of 7 degrees of freedom passes
         // twice its mean by chance 5 % of the time): counting every chance excess made the
-        // uniform flow's median sigmas five times larger (u 1.46 against 0.28 mm/s). Counting
-        // only the energy beyond the fourth-order term's pattern left turbulence's u and v at
-        // 90.5 and 90.3 %.
+        // uniform flow's median sigmas five times larger (u 1.46 against 0.28 mm/s).
         const SIGNIFICANT_EXCESS: f64 = 2.0;
         let misfit = match prior {
             Some(p) if p.noise_dof > 0.0 => Vector3::from_fn(|c, _| {

@@ -569,7 +569,7 @@ impl ScenePool {
             // Measured (tau2 over the median window's variance): straight flows 0.04-0.4
             // (uniform, moving head, HoloLens-2 raw, flume), turbulence 10-380, vortex
             // 1800-3700. Counting the spread straight paths' noise shows made their median
-            // sigmas 2-4 times larger (lines reaching into the past take in much of a cubic
+            // sigmas 1.4-4 times larger (lines reaching into the past take in much of a cubic
             // term); without the spread, turbulence's w lay 86.9 % within 2 sigma, 97.2 % with.
             (tau2 > median(&mut variances)).then_some(tau2)
         });
