@@ -73,7 +73,7 @@ pub struct FitError {
 pub struct ScenePrior {
     pub noise_variance: Vector3<f64>,
     pub noise_dof: f64,
-    pub cubic_term_variance: [Option<f64>; 3],
+    pub cubic_term_spread: [Option<f64>; 3],
 }
 
 impl FitError {
@@ -146,7 +146,7 @@ impl FitError {
         };
         let cubic_sq = Vector3::from_fn(|c, _| {
             let (d, v) = (self.cubic_term[c], cubic_variance[c]);
-            match prior.and_then(|p| p.cubic_term_variance[c]) {
+            match prior.and_then(|p| p.cubic_term_spread[c]) {
                 // The posterior mean of d^2 under a zero-mean Gaussian prior of variance tau2.
                 Some(tau2) if tau2 > 0.0 => {
                     let shrunk = d * tau2 / (tau2 + v);
@@ -249,17 +249,22 @@ impl PolynomialFit {
         let weights = &self.inverse_normal * self.design.transpose();
         let mut velocity_per_term = [0.0; 6];
         let mut position_per_term = [0.0; 6];
+        let mut unfollowed_norm_sq = [0.0; 6];
         for power in 2..=5 {
             let powers = self.design.column(1).map(|tau| tau.powi(power));
-            let absorbed = &weights * powers;
-            velocity_per_term[power as usize] = absorbed[(1, 0)] * self.scale_s.powi(power - 1);
-            position_per_term[power as usize] = absorbed[(0, 0)] * self.scale_s.powi(power);
+            let absorbed = &weights * &powers;
+            let p = power as usize;
+            velocity_per_term[p] = absorbed[(1, 0)] * self.scale_s.powi(power - 1);
+            position_per_term[p] = absorbed[(0, 0)] * self.scale_s.powi(power);
+            unfollowed_norm_sq[p] =
+                (powers - &self.design * absorbed).norm_squared() * self.scale_s.powi(2 * power);
         }
         Sensitivity {
             velocity_gain,
             position_gain,
             velocity_per_term,
             position_per_term,
+            unfollowed_norm_sq,
         }
     }
 
@@ -309,14 +314,6 @@ impl PolynomialFit {
         )
     }
 
-    /// Squared norm of the part of `t^power` (real time from the evaluation time) this
-    /// fit cannot follow: the residual energy a unit coefficient of that term leaves.
-    fn unfollowed_norm_sq(&self, power: i32) -> f64 {
-        let powers = self.design.column(1).map(|tau| tau.powi(power));
-        let followed = &self.design * (&self.inverse_normal * self.design.transpose() * &powers);
-        (powers - followed).norm_squared() * self.scale_s.powi(2 * power)
-    }
-
     /// The fitted path at the evaluation time.
     fn motion(&self) -> MotionFit {
         MotionFit {
@@ -330,12 +327,15 @@ impl PolynomialFit {
 
 /// A fit's velocity and position variances per unit of sample noise variance, and how much of a
 /// path term `d (t - t_eval)^p` each absorbs per unit of `d` (index `p`, 2 to 5; 0 where the
-/// fit's order reaches the term): the bias the fit has where the path has that term.
+/// fit's order reaches the term): the bias the fit has where the path has that term. And the
+/// residual energy a unit `d` leaves (what the fit cannot follow of the term), by which the
+/// residuals tell how large such a term is.
 struct Sensitivity {
     velocity_gain: f64,
     position_gain: f64,
     velocity_per_term: [f64; 6],
     position_per_term: [f64; 6],
+    unfollowed_norm_sq: [f64; 6],
 }
 
 /// A candidate window of a track, fitted once with the method's quadratic (centred on the
@@ -470,8 +470,10 @@ pub fn fit_adaptive(
     let mut velocity_bias_sq = Vector3::zeros();
     let mut position_bias_sq = Vector3::zeros();
     let turning = turning_rate_sq(reference_quadratic, &cubic);
-    let (fifth_norm_sq, fourth_norm_sq) =
-        (cubic.unfollowed_norm_sq(5), cubic.unfollowed_norm_sq(4));
+    let (fifth_norm_sq, fourth_norm_sq) = (
+        cubic_sensitivity.unfollowed_norm_sq[5],
+        cubic_sensitivity.unfollowed_norm_sq[4],
+    );
     let misfit_gain = |per_term: f64, norm_sq: f64| {
         if norm_sq > 0.0 {
             per_term * per_term / norm_sq
@@ -483,16 +485,16 @@ pub fn fit_adaptive(
     let (mut velocity_cubic_absorption, mut position_cubic_absorption) =
         (Vector3::zeros(), Vector3::zeros());
     let mut cubic_term = Vector3::zeros();
-    let cubic_term_gain = cubic.inverse_normal[(3, 3)] / cubic.scale_s.powi(6);
+    let scale3 = cubic.scale_s.powi(3);
+    let cubic_term_gain = cubic.inverse_normal[(3, 3)] / (scale3 * scale3);
     let mut choice = [FitChoice {
         half_window_frames: widest.half_window_frames as u8,
         order: 3,
     }; 3];
     for c in 0..3 {
         let sigma2 = noise[c];
-        let scale3 = cubic.scale_s.powi(3);
         let d = cubic.coefficients[(3, c)] / scale3;
-        let d_variance = sigma2 * cubic.inverse_normal[(3, 3)] / (scale3 * scale3);
+        let d_variance = sigma2 * cubic_term_gain;
         // The cubic term counts only where it stands out of its own noise by a wide margin
         // (z^2 > 32): with a noise level estimated from a handful of residuals, a laxer test
         // reads noise as curvature on straight paths and trades the quadratic's precision for
@@ -852,7 +854,7 @@ mod tests {
         let prior = ScenePrior {
             noise_variance: Vector3::repeat(1.0),
             noise_dof: 30.0,
-            cubic_term_variance: [None; 3],
+            cubic_term_spread: [None; 3],
         };
         let (v, p) = error.sigmas(Some(&prior));
         // (10 * 4 + 30 * 1) / 40 = 1.75.
@@ -1009,7 +1011,7 @@ mod tests {
         let prior = ScenePrior {
             noise_variance: Vector3::repeat(1.0),
             noise_dof: 10.0,
-            cubic_term_variance: [None; 3],
+            cubic_term_spread: [None; 3],
         };
         let (v, p) = error_budget().sigmas(Some(&prior));
         // x: pooled (7 * 4 + 10 * 1) / 17; residual energy 28 against the scene's 7.
@@ -1039,7 +1041,7 @@ mod tests {
             let prior = ScenePrior {
                 noise_variance: Vector3::repeat(1.0),
                 noise_dof: 10.0,
-                cubic_term_variance: [None, None, tau2],
+                cubic_term_spread: [None, None, tau2],
             };
             error.sigmas(Some(&prior)).0.z.powi(2) - noise_z
         };
@@ -1061,7 +1063,7 @@ mod tests {
         let prior = ScenePrior {
             noise_variance: Vector3::repeat(1.0),
             noise_dof: 10.0,
-            cubic_term_variance: [None, None, Some(50.0)],
+            cubic_term_spread: [None, None, Some(50.0)],
         };
         let stated = small.sigmas(Some(&prior)).0.z.powi(2) - noise_z;
         assert!(stated > 4.0 * variance * 0.9, "{stated}");
@@ -1077,7 +1079,7 @@ mod tests {
         let prior = ScenePrior {
             noise_variance: Vector3::repeat(sigma * sigma),
             noise_dof: 10.0,
-            cubic_term_variance: [None; 3],
+            cubic_term_spread: [None; 3],
         };
         let (mut covered, mut covered_without, mut trials) = (0, 0, 0);
         for _ in 0..2000 {

@@ -511,7 +511,7 @@ struct ScenePool {
     /// What the windows above say, worked out once a frame (`refresh`): every vector of a
     /// frame is judged by the same pool.
     noise_variance: Option<f64>,
-    cubic_term_variance: [Option<f64>; 3],
+    cubic_term_spread: [Option<f64>; 3],
 }
 
 impl ScenePool {
@@ -554,7 +554,7 @@ impl ScenePool {
             const TYPICAL_DOF: f64 = 21.0;
             median(&mut sorted) / (1.0 - 2.0 / (9.0 * TYPICAL_DOF)).powi(3)
         });
-        self.cubic_term_variance = [0, 1, 2].map(|c| {
+        self.cubic_term_spread = [0, 1, 2].map(|c| {
             if self.cubic_terms.len() < Self::MIN_WINDOWS {
                 return None;
             }
@@ -1124,7 +1124,7 @@ impl Pipeline {
         {
             return None;
         }
-        let (velocity_sigma, position_sigma) = self.sigmas(&fit.error, newest);
+        let (velocity_sigma, position_sigma) = fit.error.sigmas(self.scene_prior(newest).as_ref());
         Some(VelocityVector {
             frame_index: newest.frame_index,
             t_s: newest.t_s,
@@ -1152,18 +1152,13 @@ impl Pipeline {
         sight.map(|s| along * along * s * s + across * across * (1.0 - s * s))
     }
 
-    /// A fit's 1-sigma velocity and position errors, its own noise estimate pooled with the
-    /// scene's (`ScenePool`) scaled to where `sample` sits.
-    fn sigmas(&self, error: &FitError, sample: &Sample) -> (Vector3<f64>, Vector3<f64>) {
-        error.sigmas(self.scene_prior(sample).as_ref())
-    }
-
-    /// What the scene's pool says about a window centred on `sample`.
+    /// What the scene's pool says about a window centred on `sample`: its noise scaled to where
+    /// `sample` sits (`noise_unit`), for `FitError::sigmas`.
     fn scene_prior(&self, sample: &Sample) -> Option<ScenePrior> {
         self.scene_pool.noise_variance.map(|k| ScenePrior {
             noise_variance: self.noise_unit(sample) * k,
             noise_dof: ScenePool::WEIGHT_DOF,
-            cubic_term_variance: self.scene_pool.cubic_term_variance,
+            cubic_term_spread: self.scene_pool.cubic_term_spread,
         })
     }
 
@@ -1397,7 +1392,8 @@ impl Pipeline {
         } else {
             (windows.last()?.motion()?, None)
         };
-        let (velocity_sigma, position_sigma) = self.sigmas(&fit.error, centre);
+        let prior = self.scene_prior(centre);
+        let (velocity_sigma, position_sigma) = fit.error.sigmas(prior.as_ref());
         Some(Ok(Centred {
             vector: VelocityVector {
                 frame_index: centre.frame_index,
@@ -1412,7 +1408,7 @@ impl Pipeline {
             choice,
             noise_ratio: self.noise_ratio(&fit.error, centre),
             cubic_term: (fit.error.cubic_term_gain > 0.0).then(|| {
-                let noise = fit.error.pooled_noise(self.scene_prior(centre).as_ref());
+                let noise = fit.error.pooled_noise(prior.as_ref());
                 (fit.error.cubic_term, fit.error.cubic_term_variance(&noise))
             }),
         }))
