@@ -18,14 +18,14 @@ use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::tungstenite::http::header::{HeaderValue, AUTHORIZATION};
 use tokio_tungstenite::tungstenite::Message;
 
-use crate::geometry::StereoRig;
+use mrptv_engine::geometry::StereoRig;
 use crate::protocol::{
     decode_batch, encode_frame, BatchKind, Convention, Counters, DecodedBatch, Encoding, ErrorCode,
     FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage, PROTOCOL_VERSION,
 };
-use crate::ptv::PipelineConfig;
+use mrptv_engine::PipelineConfig;
 use crate::recording::{read_gray_png, Recording, RecordingError};
-use crate::synth::{ScenarioSpec, Synthesizer};
+use mrptv_engine::synth::{ScenarioSpec, Synthesizer};
 use crate::tables;
 
 #[derive(Debug, thiserror::Error)]
@@ -760,7 +760,7 @@ mod tests {
 
     #[test]
     fn synthetic_laps_keep_indices_and_times_increasing() {
-        let spec = ScenarioSpec::new(crate::synth::Scenario::Flume);
+        let spec = ScenarioSpec::new(mrptv_engine::synth::Scenario::Flume);
         let mut source = SyntheticSource {
             frames_per_lap: 3,
             ..SyntheticSource::new(spec, 1, Some(2), Encoding::Raw8)

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::ptv::{PipelineConfig, PipelineError};
+use mrptv_engine::{PipelineConfig, PipelineError};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {

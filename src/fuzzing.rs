@@ -5,12 +5,12 @@
 
 use std::path::Path;
 
-use crate::geometry::StereoRig;
+use mrptv_engine::geometry::StereoRig;
 use crate::protocol::{
     decode_batch, decode_frame, encode_frame, parse_text, HeadsetMessage, ViewerMessage,
     HEADSET_TYPES, VIEWER_TYPES,
 };
-use crate::ptv::Pipeline;
+use mrptv_engine::Pipeline;
 use crate::recording::{decode_gray_png, parse_frames, parse_rig};
 
 /// `mrptv serve`'s default `--max-image-size`: larger hellos never reach the pipeline.

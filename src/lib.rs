@@ -46,30 +46,19 @@
 //! ahead on a helper thread. Live, the tokio runtime runs the sockets; each session's pipeline
 //! and recorder have their own OS threads, so CPU-bound work never stalls the network.
 
-#[cfg(feature = "service")]
 pub mod client;
 pub mod config;
-pub mod eval;
 #[doc(hidden)]
 pub mod fuzzing;
-pub mod geometry;
 pub mod hl2ss;
-#[cfg(feature = "service")]
 pub mod load;
-#[cfg(feature = "service")]
 pub mod offline;
 pub mod protocol;
-pub mod ptv;
 pub mod recording;
-#[cfg(feature = "service")]
 pub mod rerun_log;
-#[cfg(feature = "service")]
 pub mod server;
 pub mod sparse;
-pub mod synth;
 pub mod tables;
-#[cfg(feature = "service")]
 pub mod tls;
-#[cfg(feature = "service")]
 pub mod video;
 pub mod vtk;

@@ -20,9 +20,9 @@ use thiserror::Error;
 use tokio_tungstenite::tungstenite::Message;
 
 use crate::client::{self, ClientError, FrameSource, Rate, ReplayOptions, SourceFrame};
-use crate::geometry::StereoRig;
+use mrptv_engine::geometry::StereoRig;
 use crate::protocol::Encoding;
-use crate::synth::{Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
 
 #[derive(Debug, Clone)]
 pub struct LoadOptions {

@@ -9,16 +9,16 @@ use std::time::Instant;
 
 use nalgebra::Isometry3;
 
-use crate::eval::{evaluate, EvalError, EvalOptions, Report};
+use mrptv_engine::eval::{evaluate, EvalError, EvalOptions, Report};
 
 use crate::protocol::Encoding;
-use crate::ptv::{
+use mrptv_engine::{
     FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
     StereoSearch,
 };
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger};
-use crate::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
+use mrptv_engine::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
 use crate::tables::{self, TrackRow};
 
 #[derive(Debug, thiserror::Error)]

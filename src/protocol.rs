@@ -8,8 +8,8 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::{isometry_from_row_major, isometry_to_row_major, RigFile};
-use crate::ptv::{PipelineConfig, VelocityVector};
+use mrptv_engine::geometry::{isometry_from_row_major, isometry_to_row_major, RigFile};
+use mrptv_engine::{PipelineConfig, VelocityVector};
 
 /// The protocol major version this build speaks.
 pub const PROTOCOL_VERSION: u32 = 1;
@@ -428,7 +428,7 @@ impl ServerMessage {
 }
 
 /// Columns of each row of a `field` message's `cells`, as in `field.csv`.
-pub use crate::ptv::field::FIELD_COLUMNS;
+pub use mrptv_engine::field::FIELD_COLUMNS;
 
 /// A session's mean-flow field as viewers receive it, in their convention.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -459,8 +459,8 @@ impl FieldMessage {
     pub fn new(
         session: String,
         frame: (u64, f64),
-        grid: &crate::ptv::field::FieldGrid,
-        cells: &[crate::ptv::field::CellSummary],
+        grid: &mrptv_engine::field::FieldGrid,
+        cells: &[mrptv_engine::field::CellSummary],
         truncated: bool,
         convention: Convention,
     ) -> Self {
@@ -481,13 +481,13 @@ impl FieldMessage {
     /// `cells` (in the engine's OpenCV world frame) as rows in `convention`: positions and
     /// mean velocities flipped, spreads unsigned.
     pub fn rows(
-        cells: &[crate::ptv::field::CellSummary],
+        cells: &[mrptv_engine::field::CellSummary],
         convention: Convention,
     ) -> Vec<[f64; 14]> {
         cells
             .iter()
             .map(|c| {
-                crate::ptv::field::CellSummary {
+                mrptv_engine::field::CellSummary {
                     centre: Point3::from(convention.flip(&c.centre.coords)),
                     mean: convention.flip(&c.mean),
                     ..*c

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-use crate::geometry::{isometry_from_row_major, CalibrationError, RigFile, StereoRig};
+use mrptv_engine::geometry::{isometry_from_row_major, CalibrationError, RigFile, StereoRig};
 use crate::tables::{self, TableError};
 
 #[derive(Debug, thiserror::Error)]
@@ -379,7 +379,7 @@ impl RecordingWriter {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::{Scenario, ScenarioSpec, Synthesizer};
+    use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
 
     #[test]
     fn written_recording_reads_back_exactly() {

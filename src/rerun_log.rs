@@ -30,9 +30,9 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Point3};
 use rerun::RecordingStream;
 
-use crate::geometry::{CameraModel, StereoRig};
-use crate::ptv::field::CellSummary;
-use crate::ptv::{Detection, FrameOutput, FrameStats, MatchedPoint, VelocityVector};
+use mrptv_engine::geometry::{CameraModel, StereoRig};
+use mrptv_engine::field::CellSummary;
+use mrptv_engine::{Detection, FrameOutput, FrameStats, MatchedPoint, VelocityVector};
 
 /// Where a run is logged.
 #[derive(Debug, Clone, PartialEq)]

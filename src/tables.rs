@@ -8,10 +8,11 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Point3, Vector3};
 
-use crate::geometry::isometry_to_row_major;
-use crate::ptv::field::{CellSummary, FieldSample, FIELD_COLUMNS};
-use crate::ptv::{MatchedPoint, VelocityVector};
-use crate::synth::TruthRow;
+use mrptv_engine::geometry::isometry_to_row_major;
+use mrptv_engine::field::{CellSummary, FIELD_COLUMNS};
+pub use mrptv_engine::eval::TrackRow;
+use mrptv_engine::{MatchedPoint, VelocityVector};
+use mrptv_engine::synth::TruthRow;
 
 pub const FRAMES_HEADER: &str = "index,t_s";
 pub const TRUTH_HEADER: &str = "frame,t_s,pid,x,y,z,u,v,w";
@@ -179,42 +180,6 @@ pub fn read_truth(path: &Path) -> Result<Vec<TruthRow>, TableError> {
             })
         })
         .collect()
-}
-
-/// A row of `tracks.csv` as read back.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrackRow {
-    pub frame: u64,
-    pub t_s: f64,
-    pub track_id: u64,
-    pub position: Point3<f64>,
-    pub velocity: Vector3<f64>,
-    /// 1-sigma errors (velocity, position); `None` in files written before vectors carried them.
-    pub sigma: Option<(Vector3<f64>, Vector3<f64>)>,
-}
-
-impl From<&VelocityVector> for TrackRow {
-    fn from(v: &VelocityVector) -> Self {
-        Self {
-            frame: v.frame_index,
-            t_s: v.t_s,
-            track_id: v.track_id,
-            position: v.position_in_world,
-            velocity: v.velocity_in_world,
-            sigma: Some((v.velocity_sigma, v.position_sigma)),
-        }
-    }
-}
-
-impl From<&TrackRow> for FieldSample {
-    fn from(r: &TrackRow) -> Self {
-        Self {
-            t_s: r.t_s,
-            track_id: r.track_id,
-            position: r.position,
-            velocity: r.velocity,
-        }
-    }
 }
 
 /// Reads `tracks.csv` with or without the uncertainty columns.

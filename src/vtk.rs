@@ -7,7 +7,7 @@ use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::ptv::field::CellSummary;
+use mrptv_engine::field::CellSummary;
 use crate::tables::TrackRow;
 
 /// Which VTK file a path asks for, by its extension.

@@ -12,7 +12,7 @@ use futures_util::{SinkExt, StreamExt};
 use mrptv::client::{Rate, ReplayOptions};
 use mrptv::protocol::{Encoding, ServerMessage};
 use mrptv::recording::Recording;
-use mrptv::synth::Scenario;
+use mrptv_engine::synth::Scenario;
 use tokio_tungstenite::tungstenite::Message;
 
 mod common;

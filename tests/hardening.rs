@@ -10,7 +10,7 @@ use mrptv::protocol::{encode_frame, Encoding, ErrorCode, FrameMessage, ServerMes
 use mrptv::rerun_log::{start_proxy, RerunOptions, RerunSink};
 use mrptv::server::access::AccessControl;
 use mrptv::server::ServerOptions;
-use mrptv::synth::Scenario;
+use mrptv_engine::synth::Scenario;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;

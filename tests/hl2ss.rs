@@ -16,7 +16,7 @@ use mrptv::hl2ss::{
 };
 use mrptv::recording::Recording;
 use mrptv::server::ServerOptions;
-use mrptv::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 mod common;
@@ -217,7 +217,7 @@ async fn bridge_session(codec_args: &[&str]) {
     let particles = spec.default_particles;
     mrptv::offline::write_synthetic(spec, &dir, frames, particles, 3, |_| {}).expect("synth");
     let rec = Recording::open(&dir).expect("recording");
-    let config = mrptv::ptv::PipelineConfig::default();
+    let config = mrptv_engine::PipelineConfig::default();
     assert_eq!(rec.rig.width * rec.rig.height, VLC_PIXELS as u32);
     // The left camera somewhere on the headset's rig node, the right one where the rig puts it.
     let left_from_node = Isometry3::from_parts(

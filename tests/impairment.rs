@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use mrptv::client::{Rate, ReplayOptions};
 use mrptv::protocol::Encoding;
 use mrptv::server::ServerOptions;
-use mrptv::synth::Scenario;
+use mrptv_engine::synth::Scenario;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 

@@ -9,11 +9,11 @@ use std::time::Duration;
 
 use mrptv::client::{self, Rate, RecordingSource, ReplayOptions};
 use mrptv::offline;
-use mrptv::ptv::PipelineConfig;
+use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
-use mrptv::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::synth::{Scenario, ScenarioSpec};
 
 mod common;
 use common::assert_rrd_verified;

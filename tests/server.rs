@@ -12,10 +12,10 @@ use mrptv::protocol::{
     decode_batch, encode_frame, BatchKind, Convention, DecodedBatch, Encoding, ErrorCode,
     FrameMessage, ServerMessage,
 };
-use mrptv::ptv::PipelineConfig;
+use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::server::ServerOptions;
-use mrptv::synth::Scenario;
+use mrptv_engine::synth::Scenario;
 use mrptv::tables::{self, TrackRow};
 use tokio_tungstenite::tungstenite::Message;
 

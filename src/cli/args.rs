@@ -233,7 +233,7 @@ impl std::str::FromStr for DepthRange {
 impl DepthRange {
     /// An explicit volume replaces the stereo search from the views' overlap, and the method's
     /// image-fraction K.
-    pub fn apply(range: Option<Self>, config: &mut mrptv::ptv::PipelineConfig) {
+    pub fn apply(range: Option<Self>, config: &mut mrptv_engine::PipelineConfig) {
         if let Some(r) = range {
             config.stereo.depth_range_m = Some([r.near_m, r.far_m]);
             config.stereo.disparity_range_fraction = None;

@@ -2,7 +2,7 @@
 
 use anyhow::Result;
 
-use mrptv::ptv::PipelineConfig;
+use mrptv_engine::PipelineConfig;
 
 #[derive(clap::Args)]
 pub struct Args {

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Result};
 
-use mrptv::eval::{evaluate, EvalOptions};
+use mrptv_engine::eval::{evaluate, EvalOptions};
 use mrptv::tables;
 
 #[derive(clap::Args)]

@@ -5,7 +5,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use mrptv::client::Rate;
 use mrptv::load::LoadReport;
-use mrptv::synth::Scenario;
+use mrptv_engine::synth::Scenario;
 
 use super::{init_logging, runtime};
 

@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use mrptv::offline::{self, ProcessSinks, Sink};
-use mrptv::ptv::field::{self, CellSummary, FieldGrid, FieldSample};
-use mrptv::ptv::PipelineConfig;
+use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
+use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::tables::{self, TrackRow};

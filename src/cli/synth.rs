@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 
 use mrptv::offline;
-use mrptv::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::synth::{Scenario, ScenarioSpec};
 
 use super::progress_bar;
 

@@ -14,7 +14,7 @@ use nalgebra::Isometry3;
 use serde::Serialize;
 
 use crate::client::{ClientError, FrameSource, SourceFrame};
-use crate::geometry::StereoRig;
+use mrptv_engine::geometry::StereoRig;
 use crate::hl2ss::{
     decode_header, fit_lens, isometry_from_row_vector, stereo_rig, LensFit, Pairer, StreamConfig,
     VlcCalibration, VlcCodec, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES,

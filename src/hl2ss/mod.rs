@@ -17,18 +17,16 @@
 //!   the *centre* of pixel (u, v) (Research Mode maps `(u + 0.5, v + 0.5)` with the pixel's corner
 //!   at 0; in OpenCV's convention, which `rig.json` uses, that centre is `(u, v)`).
 //!
-//! Submodules with I/O (the `service` feature): [`bridge`] turns the streams into a headset
+//! Submodules with I/O: [`bridge`] turns the streams into a headset
 //! session (`mrptv hl2ss`); [`holograms`] draws the vectors back through the Unity plugin's
 //! message queue (`mrptv hl2ss --holograms`).
 
-#[cfg(feature = "service")]
 pub mod bridge;
-#[cfg(feature = "service")]
 pub mod holograms;
 
 use nalgebra::{Isometry3, Matrix4, SMatrix, SVector};
 
-use crate::geometry::{isometry_from_row_major, CameraModel, Distortion, StereoRig};
+use mrptv_engine::geometry::{isometry_from_row_major, CameraModel, Distortion, StereoRig};
 
 pub const LEFT_FRONT_PORT: u16 = 3800;
 pub const RIGHT_FRONT_PORT: u16 = 3802;
@@ -452,7 +450,7 @@ impl VlcCalibration {
         for v in 0..VLC_HEIGHT {
             for u in 0..VLC_WIDTH {
                 let (x, y) = camera
-                    .unproject(crate::geometry::PixelPoint {
+                    .unproject(mrptv_engine::geometry::PixelPoint {
                         x: f64::from(u),
                         y: f64::from(v),
                     })
@@ -784,7 +782,7 @@ impl Pairer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::PixelPoint;
+    use mrptv_engine::geometry::PixelPoint;
     use nalgebra::{Translation3, UnitQuaternion};
 
     fn at(timestamp: u64) -> VlcFrame {
@@ -916,7 +914,7 @@ mod tests {
 
     #[test]
     fn a_lens_is_recovered_from_its_unprojection_table() {
-        let rig = crate::synth::hololens_raw_rig();
+        let rig = mrptv_engine::synth::hololens_raw_rig();
         for truth in [rig.left, rig.right] {
             let (x, y) = table(&truth);
             let fit = fit_lens(&x, &y, VLC_WIDTH, VLC_HEIGHT, 8).expect("fits");
@@ -957,7 +955,7 @@ mod tests {
 
     #[test]
     fn the_rig_comes_from_the_two_extrinsics_and_calibrations_round_trip() {
-        let truth = crate::synth::hololens_raw_rig();
+        let truth = mrptv_engine::synth::hololens_raw_rig();
         // The left camera somewhere on the rig node; the right one where the rig puts it.
         let left_from_node = Isometry3::from_parts(
             Translation3::new(-0.05, 0.02, 0.01),

@@ -15,14 +15,14 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
 use super::{unix_ms, FieldOptions, Hub, HubEvent, PublishedBatch, PublishedField, SessionShared};
-use crate::geometry::StereoRig;
+use mrptv_engine::geometry::StereoRig;
 use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
     Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
 };
-use crate::ptv::field::StreamField;
-use crate::ptv::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
+use mrptv_engine::field::StreamField;
+use mrptv_engine::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{FrameEntry, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger, RerunSink};
 

@@ -5,7 +5,7 @@
 //! - `ingest`: one task per headset WebSocket reads messages, validates them and hands frames to
 //!   the session's pipeline thread through a [`queue::DropOldestQueue`] (bounded: the oldest frame
 //!   is dropped and reported when the pipeline falls behind). The pipeline thread runs
-//!   [`crate::ptv::Pipeline`], sends the headset its vector batches first, then publishes them to
+//!   [`mrptv_engine::Pipeline`], sends the headset its vector batches first, then publishes them to
 //!   viewers and hands the frame to the session's recorder thread.
 //! - `watch`: one task per viewer WebSocket; all sessions publish to one `broadcast` channel, so a
 //!   slow viewer lags (loses the oldest messages) and never holds up a pipeline or other viewers.
@@ -47,8 +47,8 @@ use crate::protocol::{
     Batch, Convention, Counters, ErrorCode, FieldMessage, ServerMessage, SessionDescription,
     SessionInfo, PROTOCOL_VERSION,
 };
-use crate::ptv::field::{CellSummary, FieldGrid};
-use crate::ptv::PipelineConfig;
+use mrptv_engine::field::{CellSummary, FieldGrid};
+use mrptv_engine::PipelineConfig;
 use crate::rerun_log::RerunOptions;
 
 /// Everything `mrptv serve` can be told; `Default` gives the documented defaults.

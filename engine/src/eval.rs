@@ -8,11 +8,48 @@
 use std::collections::BTreeMap;
 use std::fmt;
 
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
+use crate::field::FieldSample;
 use crate::synth::TruthRow;
-use crate::tables::TrackRow;
+use crate::VelocityVector;
+
+/// A measured vector as `tracks.csv` holds it (one row), what scoring reads.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackRow {
+    pub frame: u64,
+    pub t_s: f64,
+    pub track_id: u64,
+    pub position: Point3<f64>,
+    pub velocity: Vector3<f64>,
+    /// 1-sigma errors (velocity, position); `None` in files written before vectors carried them.
+    pub sigma: Option<(Vector3<f64>, Vector3<f64>)>,
+}
+
+impl From<&VelocityVector> for TrackRow {
+    fn from(v: &VelocityVector) -> Self {
+        Self {
+            frame: v.frame_index,
+            t_s: v.t_s,
+            track_id: v.track_id,
+            position: v.position_in_world,
+            velocity: v.velocity_in_world,
+            sigma: Some((v.velocity_sigma, v.position_sigma)),
+        }
+    }
+}
+
+impl From<&TrackRow> for FieldSample {
+    fn from(r: &TrackRow) -> Self {
+        Self {
+            t_s: r.t_s,
+            track_id: r.track_id,
+            position: r.position,
+            velocity: r.velocity,
+        }
+    }
+}
 
 #[derive(Debug, Clone, Copy)]
 pub struct EvalOptions {
@@ -143,7 +180,7 @@ fn coverage(associations: &[Association]) -> Option<Coverage> {
     let position: Pick = |(a, _, sp)| (a.row.position - a.truth.position, *sp);
     let median_sigma = Vector3::from_fn(|c, _| {
         let mut values: Vec<f64> = with_sigma.iter().map(|(_, sv, _)| sv[c]).collect();
-        crate::ptv::link::median(&mut values)
+        crate::link::median(&mut values)
     });
     Some(Coverage {
         rows: with_sigma.len(),

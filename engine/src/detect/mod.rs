@@ -17,8 +17,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::blobs::{fit_spots, Spot, SpotFit};
-use super::ImageView;
+pub mod spots;
+
+use spots::{fit_spots, Spot, SpotFit};
+use crate::ImageView;
 use crate::geometry::PixelPoint;
 
 /// How each pixel of a region weighs in its centroid.

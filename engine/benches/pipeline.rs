@@ -13,9 +13,9 @@
 //! detection time.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use mrptv::ptv::detect::{DetectConfig, Detector};
-use mrptv::ptv::{ImageView, Pipeline, PipelineConfig, StereoFrame};
-use mrptv::synth::{parallel_rig, Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::detect::{DetectConfig, Detector};
+use mrptv_engine::{ImageView, Pipeline, PipelineConfig, StereoFrame};
+use mrptv_engine::synth::{parallel_rig, Scenario, ScenarioSpec, Synthesizer};
 
 const FRAMES: usize = 32;
 

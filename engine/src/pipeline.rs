@@ -8,16 +8,16 @@ use std::collections::{BTreeMap, VecDeque};
 use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::detect::{DetectConfig, Detection, Detector, Separation};
-use super::kinematics::{
+use crate::detect::{DetectConfig, Detection, Detector, Separation};
+use crate::kinematics::{
     fit_adaptive, fit_line, fit_quadratic, neighbour_outliers, FitChoice, NeighbourTest,
     QuadraticWindow,
 };
-use super::kinematics::{FitError, ScenePrior};
-use super::link::{median, PointGrid};
-use super::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
-use super::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
-use super::{ImageView, StereoFrame};
+use crate::kinematics::{FitError, ScenePrior};
+use crate::link::{median, PointGrid};
+use crate::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
+use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
+use crate::{ImageView, StereoFrame};
 use crate::geometry::{CalibrationError, PixelPoint, RectPoint, Rectification, StereoRig};
 
 /// Velocity estimation parameters.
@@ -109,7 +109,7 @@ impl PipelineConfig {
     /// search ranges as image fractions (K = 0.25, S = 0.01), no track memory in stereo, no
     /// neighbour prediction, no touching-particle split, no rejection.
     pub fn method() -> Self {
-        use super::link::Assignment;
+        use crate::link::Assignment;
         let mut c = Self::default();
         c.detect.split_touching = false;
         c.detect.fit_overlaps = false;
@@ -1271,7 +1271,7 @@ impl Pipeline {
             // with the step (a vortex turns its particles by a fixed angle per frame).
             let across_px = link
                 .rejoin_tolerance_px
-                .max(super::link::TURN_PER_FRAME * step);
+                .max(crate::link::TURN_PER_FRAME * step);
             for (_, b) in birth_grid.near(image.x, image.y, 2.0 * across_px) {
                 let sample = &births[*b].sample;
                 let c = cost(sample, world, across_px, along_scale(sample.depth_m));

@@ -19,7 +19,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
-use super::link::{
+use crate::link::{
     assign, normalising_mean, Assignment, CostScale, Feature, LinkedFeature, SortedByX,
 };
 use crate::geometry::Rectification;
@@ -599,7 +599,7 @@ mod tests {
     fn the_method_keeps_its_image_fractions() {
         let rect = rectification(&crate::synth::parallel_rig(640, 480, 400.0, 0.1));
         let search =
-            StereoSearch::new(&crate::ptv::PipelineConfig::method().stereo, &rect).expect("search");
+            StereoSearch::new(&crate::PipelineConfig::method().stereo, &rect).expect("search");
         assert!((search.max_disparity_px - 0.25 * 2.0 * rect.half_width_px).abs() < 1e-9);
         assert!((search.epipolar_band_px - 0.01 * 2.0 * rect.half_height_px).abs() < 1e-9);
     }

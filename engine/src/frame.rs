@@ -1,22 +1,4 @@
-//! The MR-PTV algorithm: pure, synchronous, no I/O. One module per stage, in pipeline order:
-//!
-//! `detect` (image -> [`Detection`]) -> rectify (geometry) -> `link` (per camera, frame to frame)
-//! -> `stereo` (left <-> right) -> triangulate (geometry) -> `kinematics` (moving least squares),
-//! all driven by the [`Pipeline`] state machine one [`StereoFrame`] at a time.
-
-pub mod blobs;
-pub mod detect;
-pub mod field;
-pub mod kinematics;
-pub mod link;
-pub mod pipeline;
-pub mod stereo;
-
-pub use detect::{Detection, Detector};
-pub use pipeline::{
-    FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError, VelocityVector,
-};
-pub use stereo::StereoSearch;
+//! The frames the pipeline consumes: borrowed grayscale images and synchronized stereo pairs.
 
 use crate::geometry::PixelPoint;
 use nalgebra::Isometry3;

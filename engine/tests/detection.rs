@@ -1,10 +1,10 @@
 //! Sub-pixel detection accuracy on isolated synthetic particles, with and without a strong
 //! illumination gradient.
 
-use mrptv::geometry::PixelPoint;
-use mrptv::ptv::detect::{DetectConfig, Detector};
-use mrptv::ptv::ImageView;
-use mrptv::synth::{Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::geometry::PixelPoint;
+use mrptv_engine::detect::{DetectConfig, Detector};
+use mrptv_engine::ImageView;
+use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
 
 /// RMS centroid error (px) over isolated particles, and the fraction of them detected.
 fn centroid_error(spec: ScenarioSpec, config: &DetectConfig) -> (f64, f64, usize) {
@@ -94,7 +94,7 @@ fn strong_illumination_gradient_is_handled() {
 /// are taken for overlapping particles and cut in two: a known limit.
 #[test]
 fn gaussian_motion_blurred_particles_keep_sub_tenth_pixel_centroids() {
-    use mrptv::synth::{Clutter, Flow};
+    use mrptv_engine::synth::{Clutter, Flow};
     let mut spec = ScenarioSpec::new(Scenario::Flume);
     spec.flow = Flow::Uniform(nalgebra::Vector3::new(0.2, -0.08, 0.0));
     spec.noise_sd = 4.0;

@@ -10,7 +10,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use nalgebra::{Point3, Vector3};
 
-use super::VelocityVector;
+use crate::VelocityVector;
 
 /// One velocity sample as the grid keeps it.
 #[derive(Debug, Clone, Copy, PartialEq)]
