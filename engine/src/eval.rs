@@ -180,7 +180,7 @@ fn coverage(associations: &[Association]) -> Option<Coverage> {
     let position: Pick = |(a, _, sp)| (a.row.position - a.truth.position, *sp);
     let median_sigma = Vector3::from_fn(|c, _| {
         let mut values: Vec<f64> = with_sigma.iter().map(|(_, sv, _)| sv[c]).collect();
-        crate::link::median(&mut values)
+        crate::spatial::median(&mut values)
     });
     Some(Coverage {
         rows: with_sigma.len(),

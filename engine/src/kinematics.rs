@@ -4,7 +4,7 @@
 //! velocity at `t_n` is `b` and the smoothed position `a`. The method centres the window on `t_n`
 //! (`+-M` frames). Times come from the frames' timestamps, so jittered frame intervals are honoured.
 
-use crate::link::median;
+use crate::spatial::median;
 use nalgebra::{DMatrix, Point3, Vector3};
 
 /// A fitted path evaluated at one time.

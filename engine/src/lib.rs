@@ -7,6 +7,7 @@ pub mod detect;
 pub mod eval;
 pub mod field;
 mod frame;
+mod spatial;
 pub mod geometry;
 pub mod kinematics;
 pub mod link;

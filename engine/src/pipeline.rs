@@ -14,7 +14,7 @@ use crate::kinematics::{
     QuadraticWindow,
 };
 use crate::kinematics::{FitError, ScenePrior};
-use crate::link::{median, PointGrid};
+use crate::spatial::{median, PointGrid, GRID_CELL_PX};
 use crate::link::{CameraLinker, CostScale, Feature, LinkConfig, LinkedFeature};
 use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoConfig, StereoSearch};
 use crate::{ImageView, StereoFrame};
@@ -109,7 +109,7 @@ impl PipelineConfig {
     /// search ranges as image fractions (K = 0.25, S = 0.01), no track memory in stereo, no
     /// neighbour prediction, no touching-particle split, no rejection.
     pub fn method() -> Self {
-        use crate::link::Assignment;
+        use crate::spatial::Assignment;
         let mut c = Self::default();
         c.detect.split_touching = false;
         c.detect.fit_overlaps = false;
@@ -1579,7 +1579,7 @@ impl Camera {
                 .filter_map(&from_rect)
                 .collect();
             self.detector
-                .separate_expected(image, &expected, detections);
+                .separate_expected(image, &config.detect, &expected, detections);
         }
         let (features, detection_of): (Vec<Feature>, Vec<usize>) = detections
             .iter()

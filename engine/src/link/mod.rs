@@ -17,18 +17,12 @@
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::RectPoint;
+use crate::spatial::{assign, median, normalising_mean, PointGrid, SortedByX, GRID_CELL_PX};
 
-/// How candidates are assigned once every cost is known.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Assignment {
-    /// The method: each particle takes its own cheapest candidate. Where two claim the same
-    /// candidate, the cheaper claim wins and the other particle goes unmatched.
-    PerParticle,
-    /// Globally cheapest pairs first, each candidate used once: a particle that loses its first
-    /// choice still gets its next-best free candidate.
-    OneToOne,
-}
+mod first_steps;
+
+use first_steps::FirstSteps;
+pub use crate::spatial::Assignment;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -177,57 +171,6 @@ pub struct CostScale {
     pub half_height_px: f64,
 }
 
-/// The mean that normalises a cost term (D_ave, B_ave, U_ave); 1 when there is nothing to average,
-/// so an empty frame never divides by zero.
-pub(crate) fn normalising_mean(values: impl Iterator<Item = f64>) -> f64 {
-    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-    if n == 0 || sum <= 0.0 {
-        1.0
-    } else {
-        sum / n as f64
-    }
-}
-
-/// Picks pairs `(row, column)` from candidate `(cost, row, column)` triples.
-pub(crate) fn assign(
-    mut candidates: Vec<(f64, usize, usize)>,
-    rows: usize,
-    columns: usize,
-    mode: Assignment,
-) -> Vec<(usize, usize)> {
-    // Sorting by (cost, row, column) keeps the outcome independent of input order.
-    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-    let mut row_done = vec![false; rows];
-    let mut column_done = vec![false; columns];
-    let mut pairs = Vec::new();
-    for (_, r, c) in candidates {
-        if row_done[r] {
-            continue;
-        }
-        match mode {
-            Assignment::OneToOne => {
-                if column_done[c] {
-                    continue;
-                }
-                row_done[r] = true;
-                column_done[c] = true;
-                pairs.push((r, c));
-            }
-            Assignment::PerParticle => {
-                // This is the row's own cheapest candidate; if a cheaper claim took it, the row
-                // stays unmatched.
-                row_done[r] = true;
-                if !column_done[c] {
-                    column_done[c] = true;
-                    pairs.push((r, c));
-                }
-            }
-        }
-    }
-    pairs.sort_unstable();
-    pairs
-}
-
 impl CameraLinker {
     pub fn new() -> Self {
         Self::default()
@@ -258,7 +201,7 @@ impl CameraLinker {
     ) -> Vec<LinkedFeature> {
         let d_ave = normalising_mean(features.iter().map(|f| f.diameter_px));
         let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
-        let sorted_x = SortedByX::new(features);
+        let sorted_x = SortedByX::new(features.iter().map(|f| f.rect));
         // Indexed only when some track has no motion yet: most frames of a steady flow have none.
         let new_tracks =
             config.predict_new_from_neighbours && self.tracks.iter().any(|t| t.motion.is_none());
@@ -270,7 +213,7 @@ impl CameraLinker {
             let with_motion = self.tracks.iter().enumerate();
             PointGrid::new(
                 with_motion.filter_map(|(i, t)| t.motion.map(|_| (t.last.rect, i))),
-                16.0,
+                GRID_CELL_PX,
             )
         });
         let predictions: Vec<RectPoint> = (0..self.tracks.len())
@@ -454,339 +397,9 @@ impl CameraLinker {
     }
 }
 
-/// What a new track's first step is learnt from: this frame's features and the tracks seen in
-/// the last frame (neighbours), each indexed once per frame.
-struct FirstSteps {
-    features: PointGrid,
-    seen_last: PointGrid,
-    /// Where lone detections of the frame before last were: tracks seen once, then not linked.
-    lone_before: PointGrid,
-    density_per_px2: f64,
-}
-
-impl FirstSteps {
-    fn new(tracks: &[ActiveTrack], features: &[Feature], scale: CostScale) -> Self {
-        const CELL_PX: f64 = 16.0;
-        Self {
-            features: PointGrid::new(
-                features.iter().enumerate().map(|(i, f)| (f.rect, i)),
-                CELL_PX,
-            ),
-            seen_last: PointGrid::new(
-                tracks
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, t)| t.missed == 0)
-                    .map(|(i, t)| (t.last.rect, i)),
-                CELL_PX,
-            ),
-            lone_before: PointGrid::new(
-                tracks
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, t)| t.missed == 1 && t.age == 1)
-                    .map(|(i, t)| (t.last.rect, i)),
-                CELL_PX,
-            ),
-            density_per_px2: features.len() as f64
-                / (4.0 * scale.half_width_px * scale.half_height_px).max(1.0),
-        }
-    }
-
-    /// A new track's first step by neighbour consensus: of the displacements to this frame's
-    /// features within `max_displacement_px`, the one that its nearest neighbours (tracks seen in
-    /// the last frame) can also make, each to some feature within a tolerance that grows with
-    /// the step (neighbours in a shear or vortex move a little differently). A wider tolerance
-    /// also catches unrelated features, so votes are weighed against chance: the step chosen is
-    /// the one whose votes are least likely from features scattered at this frame's density,
-    /// and only if chance explains them less than once in a thousand. `None` otherwise: no
-    /// evidence beats a guess.
-    fn consensus_step(&self, t: usize, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
-        const CONSENSUS_NEIGHBOURS: usize = 8;
-        const CHANCE: f64 = 1e-3;
-        let reach = config.max_displacement_px;
-        let near = self
-            .seen_last
-            .nearest(last.x, last.y, CONSENSUS_NEIGHBOURS, t);
-        let k = near.len();
-        if k < 2 {
-            return None;
-        }
-        let mut best: Option<(f64, (f64, f64))> = None;
-        for (c, _) in self.features.near(last.x, last.y, reach) {
-            let (dx, dy) = (c.x - last.x, c.y - last.y);
-            let step = dx.hypot(dy);
-            if step > reach {
-                continue;
-            }
-            let tolerance = (0.15 * step).max(2.0);
-            let by_chance_per_neighbour =
-                1.0 - (-self.density_per_px2 * 4.0 * tolerance * tolerance).exp();
-            // A step is given up once its misses leave too few neighbours to outvote chance:
-            // in a dense frame a new track has hundreds of candidate steps, nearly all of them
-            // voted for by none or one neighbour.
-            let Some(needed) = votes_needed(k, by_chance_per_neighbour, CHANCE) else {
-                continue;
-            };
-            let (mut votes, mut misses) = (0, 0);
-            for q in &near {
-                if self.features.any_in_box(q.x + dx, q.y + dy, tolerance) {
-                    votes += 1;
-                } else {
-                    misses += 1;
-                    if k - misses < needed {
-                        break;
-                    }
-                }
-            }
-            if votes < needed {
-                continue;
-            }
-            let chance = binomial_tail(k, votes, by_chance_per_neighbour);
-            if best.is_none_or(|(b, _)| chance < b) {
-                best = Some((chance, (dx, dy)));
-            }
-        }
-        best.map(|(_, d)| d)
-    }
-
-    /// A new track's first step from three frames, where its neighbours cannot tell it (they
-    /// move differently, as in a vortex, or none is established yet): of the lone detections of
-    /// the frame before last within `max_displacement_px`, the one that, with this track's
-    /// detection, predicts a detection in this frame best at constant velocity, within
-    /// `TURN_PER_FRAME` of the step. Without it a particle moving more than the linking box per
-    /// frame through a rotating flow starts a new track every frame.
-    fn three_frame_step(&self, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
-        let reach = config.max_displacement_px;
-        let mut best: Option<(f64, (f64, f64))> = None;
-        for (before, _) in self.lone_before.near(last.x, last.y, reach) {
-            let (dx, dy) = (last.x - before.x, last.y - before.y);
-            let step = dx.hypot(dy);
-            if step > reach {
-                continue;
-            }
-            let tolerance = (TURN_PER_FRAME * step).max(2.0);
-            let (x, y) = (last.x + dx, last.y + dy);
-            let miss = self
-                .features
-                .near(x, y, tolerance)
-                .map(|(c, _)| (c.x - x).hypot(c.y - y))
-                .filter(|&m| m <= tolerance)
-                .min_by(f64::total_cmp);
-            if let Some(miss) = miss {
-                let score = miss / tolerance;
-                if best.is_none_or(|(b, _)| score < b) {
-                    best = Some((score, (dx, dy)));
-                }
-            }
-        }
-        best.map(|(_, d)| d)
-    }
-}
-
-/// The fewest successes, at least 2, with `binomial_tail(n, v, p) < chance`; `None` if even `n`
-/// is not that unlikely.
-fn votes_needed(n: usize, p: f64, chance: f64) -> Option<usize> {
-    binomial_tails(n, p)
-        .enumerate()
-        .take(n + 1)
-        .skip(2)
-        .find(|&(_, tail)| tail < chance)
-        .map(|(at_least, _)| at_least)
-}
-
-/// P(X >= at_least) for X ~ Binomial(n, p).
-fn binomial_tail(n: usize, at_least: usize, p: f64) -> f64 {
-    binomial_tails(n, p).nth(at_least.min(n + 1)).unwrap_or(0.0)
-}
-
-/// P(X >= 0), P(X >= 1), ..., P(X >= n + 1) for X ~ Binomial(n, p): one minus the probability
-/// terms summed from below, so every tail is computed the same way wherever it is asked for.
-fn binomial_tails(n: usize, p: f64) -> impl Iterator<Item = f64> {
-    let mut term = (1.0 - p).powi(n as i32);
-    let mut below = 0.0;
-    std::iter::once(1.0).chain((0..=n).map(move |i| {
-        below += term;
-        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
-        (1.0 - below).max(0.0)
-    }))
-}
-
-/// The median of `values` (0 for none), which it reorders: a selection, not a sort, as the
-/// scene's pool asks for many medians each frame.
-pub(crate) fn median(values: &mut [f64]) -> f64 {
-    let n = values.len();
-    if n == 0 {
-        return 0.0;
-    }
-    let (below, &mut upper, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
-    if n % 2 == 1 {
-        upper
-    } else {
-        let lower = below
-            .iter()
-            .copied()
-            .max_by(f64::total_cmp)
-            .unwrap_or(upper);
-        (lower + upper) / 2.0
-    }
-}
-
-/// Points bucketed in square cells, so box and nearest-neighbour queries cost the cells they
-/// touch rather than every point: a new track's first step asks both, for each of its candidate
-/// steps, and a dense frame has a thousand new tracks.
-pub(crate) struct PointGrid {
-    cell_px: f64,
-    min_x: f64,
-    min_y: f64,
-    columns: usize,
-    rows: usize,
-    /// Points of cell `c` are `points[starts[c]..starts[c + 1]]`, with their indices.
-    starts: Vec<usize>,
-    points: Vec<(RectPoint, usize)>,
-}
-
-impl PointGrid {
-    pub(crate) fn new(points: impl Iterator<Item = (RectPoint, usize)>, cell_px: f64) -> Self {
-        let points: Vec<(RectPoint, usize)> = points.collect();
-        let (mut min_x, mut min_y, mut max_x, mut max_y) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-        if let Some((first, _)) = points.first() {
-            (min_x, min_y, max_x, max_y) = (first.x, first.y, first.x, first.y);
-        }
-        for (p, _) in &points {
-            min_x = min_x.min(p.x);
-            min_y = min_y.min(p.y);
-            max_x = max_x.max(p.x);
-            max_y = max_y.max(p.y);
-        }
-        let columns = ((max_x - min_x) / cell_px) as usize + 1;
-        let rows = ((max_y - min_y) / cell_px) as usize + 1;
-        let mut grid = Self {
-            cell_px,
-            min_x,
-            min_y,
-            columns,
-            rows,
-            starts: vec![0; columns * rows + 1],
-            points: Vec::with_capacity(points.len()),
-        };
-        let cells: Vec<usize> = points
-            .iter()
-            .map(|(p, _)| {
-                let (column, row) = grid.cell_of(p.x, p.y);
-                column + row * columns
-            })
-            .collect();
-        for &c in &cells {
-            grid.starts[c + 1] += 1;
-        }
-        for c in 0..columns * rows {
-            grid.starts[c + 1] += grid.starts[c];
-        }
-        let mut order: Vec<usize> = (0..points.len()).collect();
-        order.sort_by_key(|&i| (cells[i], i));
-        grid.points = order.into_iter().map(|i| points[i]).collect();
-        grid
-    }
-
-    /// Column and row of the cell holding (x, y), clamped to the grid.
-    fn cell_of(&self, x: f64, y: f64) -> (usize, usize) {
-        let column = ((x - self.min_x) / self.cell_px).floor().max(0.0) as usize;
-        let row = ((y - self.min_y) / self.cell_px).floor().max(0.0) as usize;
-        (column.min(self.columns - 1), row.min(self.rows - 1))
-    }
-
-    /// Points in the cells overlapping the box `x +- half`, `y +- half` (a superset of the box).
-    pub(crate) fn near(
-        &self,
-        x: f64,
-        y: f64,
-        half: f64,
-    ) -> impl Iterator<Item = &(RectPoint, usize)> {
-        let (c0, r0) = self.cell_of(x - half, y - half);
-        let (c1, r1) = self.cell_of(x + half, y + half);
-        (r0..=r1).flat_map(move |r| {
-            let row = r * self.columns;
-            self.points[self.starts[row + c0]..self.starts[row + c1 + 1]].iter()
-        })
-    }
-
-    pub(crate) fn any_in_box(&self, x: f64, y: f64, half: f64) -> bool {
-        self.near(x, y, half)
-            .any(|(p, _)| (p.x - x).abs() <= half && (p.y - y).abs() <= half)
-    }
-
-    /// Up to `k` points nearest to (x, y), except index `skip`; nearest first.
-    pub(crate) fn nearest(&self, x: f64, y: f64, k: usize, skip: usize) -> Vec<RectPoint> {
-        self.nearest_indexed(x, y, k, skip)
-            .into_iter()
-            .map(|(p, _)| p)
-            .collect()
-    }
-
-    /// Up to `k` points nearest to (x, y) with their indices, except index `skip`; nearest
-    /// first. Exact: every point within the search radius is seen before the radius is trusted.
-    pub(crate) fn nearest_indexed(
-        &self,
-        x: f64,
-        y: f64,
-        k: usize,
-        skip: usize,
-    ) -> Vec<(RectPoint, usize)> {
-        let mut half = self.cell_px;
-        loop {
-            let mut found: Vec<(f64, (RectPoint, usize))> = self
-                .near(x, y, half)
-                .filter(|(_, i)| *i != skip)
-                .map(|&(p, i)| ((p.x - x).hypot(p.y - y), (p, i)))
-                .filter(|(d, _)| *d <= half)
-                .collect();
-            let everything = half > self.cell_px * (self.columns + self.rows) as f64;
-            if found.len() >= k || everything {
-                found.sort_by(|a, b| a.0.total_cmp(&b.0));
-                return found.into_iter().take(k).map(|(_, p)| p).collect();
-            }
-            half *= 2.0;
-        }
-    }
-}
-
-/// Feature indices sorted by x, so a box query costs a binary search plus its hits.
-pub(crate) struct SortedByX {
-    order: Vec<(f64, usize)>,
-}
-
-impl SortedByX {
-    pub(crate) fn new(features: &[Feature]) -> Self {
-        let mut order: Vec<(f64, usize)> = features
-            .iter()
-            .enumerate()
-            .map(|(i, f)| (f.rect.x, i))
-            .collect();
-        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        Self { order }
-    }
-
-    pub(crate) fn within(&self, min_x: f64, max_x: f64) -> impl Iterator<Item = usize> + '_ {
-        let start = self.order.partition_point(|(x, _)| *x < min_x);
-        self.order[start..]
-            .iter()
-            .take_while(move |(x, _)| *x <= max_x)
-            .map(|(_, i)| *i)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn median_of_odd_even_and_no_values() {
-        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
-        assert_eq!(median(&mut [5.0, 5.0, -1.0, 7.0, 5.0, 0.5]), 5.0);
-        assert_eq!(median(&mut []), 0.0);
-    }
 
     const SCALE: CostScale = CostScale {
         half_width_px: 320.0,
@@ -1097,26 +710,5 @@ mod tests {
             }
         }
         assert_eq!(votes_needed(8, 0.7, 1e-3), None);
-    }
-
-    #[test]
-    fn binomial_tail_matches_direct_sums() {
-        assert!((binomial_tail(8, 0, 0.3) - 1.0).abs() < 1e-12);
-        assert!((binomial_tail(2, 2, 0.5) - 0.25).abs() < 1e-12);
-        assert!((binomial_tail(3, 2, 0.5) - 0.5).abs() < 1e-12);
-        assert!(binomial_tail(8, 5, 0.01) < 1e-7);
-    }
-
-    #[test]
-    fn per_particle_loser_goes_unmatched_one_to_one_gets_next_best() {
-        let candidates = vec![(0.1, 0, 0), (0.2, 1, 0), (0.5, 1, 1)];
-        assert_eq!(
-            assign(candidates.clone(), 2, 2, Assignment::PerParticle),
-            vec![(0, 0)]
-        );
-        assert_eq!(
-            assign(candidates, 2, 2, Assignment::OneToOne),
-            vec![(0, 0), (1, 1)]
-        );
     }
 }

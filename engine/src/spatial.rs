@@ -1,0 +1,260 @@
+//! Spatial helpers the stages share: a grid of points for box and nearest-neighbour queries, a
+//! sort by x for band queries, medians, cost normalisation and the assignment of candidates.
+//! Each keeps a stage's cost proportional to what it looks at, not to every pair.
+
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::RectPoint;
+
+/// Side of the cells that index image points, pixels: about the spacing of neighbouring particle
+/// images, so a neighbourhood query visits a few cells.
+pub(crate) const GRID_CELL_PX: f64 = 16.0;
+
+/// How candidates are assigned once every cost is known.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Assignment {
+    /// The method: each particle takes its own cheapest candidate. Where two claim the same
+    /// candidate, the cheaper claim wins and the other particle goes unmatched.
+    PerParticle,
+    /// Globally cheapest pairs first, each candidate used once: a particle that loses its first
+    /// choice still gets its next-best free candidate.
+    OneToOne,
+}
+
+/// Picks pairs `(row, column)` from candidate `(cost, row, column)` triples.
+pub(crate) fn assign(
+    mut candidates: Vec<(f64, usize, usize)>,
+    rows: usize,
+    columns: usize,
+    mode: Assignment,
+) -> Vec<(usize, usize)> {
+    // Sorting by (cost, row, column) keeps the outcome independent of input order.
+    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let mut row_done = vec![false; rows];
+    let mut column_done = vec![false; columns];
+    let mut pairs = Vec::new();
+    for (_, r, c) in candidates {
+        if row_done[r] {
+            continue;
+        }
+        match mode {
+            Assignment::OneToOne => {
+                if column_done[c] {
+                    continue;
+                }
+                row_done[r] = true;
+                column_done[c] = true;
+                pairs.push((r, c));
+            }
+            Assignment::PerParticle => {
+                // This is the row's own cheapest candidate; if a cheaper claim took it, the row
+                // stays unmatched.
+                row_done[r] = true;
+                if !column_done[c] {
+                    column_done[c] = true;
+                    pairs.push((r, c));
+                }
+            }
+        }
+    }
+    pairs.sort_unstable();
+    pairs
+}
+
+/// The mean that normalises a cost term (D_ave, B_ave, U_ave); 1 when there is nothing to average,
+/// so an empty frame never divides by zero.
+pub(crate) fn normalising_mean(values: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    if n == 0 || sum <= 0.0 {
+        1.0
+    } else {
+        sum / n as f64
+    }
+}
+
+/// The median of `values` (0 for none), which it reorders: a selection, not a sort, as the
+/// scene's pool asks for many medians each frame.
+pub(crate) fn median(values: &mut [f64]) -> f64 {
+    let n = values.len();
+    if n == 0 {
+        return 0.0;
+    }
+    let (below, &mut upper, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
+    if n % 2 == 1 {
+        upper
+    } else {
+        let lower = below
+            .iter()
+            .copied()
+            .max_by(f64::total_cmp)
+            .unwrap_or(upper);
+        (lower + upper) / 2.0
+    }
+}
+
+/// Points bucketed in square cells, so box and nearest-neighbour queries cost the cells they
+/// touch rather than every point: a new track's first step asks both, for each of its candidate
+/// steps, and a dense frame has a thousand new tracks.
+pub(crate) struct PointGrid {
+    cell_px: f64,
+    min_x: f64,
+    min_y: f64,
+    columns: usize,
+    rows: usize,
+    /// Points of cell `c` are `points[starts[c]..starts[c + 1]]`, with their indices.
+    starts: Vec<usize>,
+    points: Vec<(RectPoint, usize)>,
+}
+
+impl PointGrid {
+    pub(crate) fn new(points: impl Iterator<Item = (RectPoint, usize)>, cell_px: f64) -> Self {
+        let points: Vec<(RectPoint, usize)> = points.collect();
+        let (mut min_x, mut min_y, mut max_x, mut max_y) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        if let Some((first, _)) = points.first() {
+            (min_x, min_y, max_x, max_y) = (first.x, first.y, first.x, first.y);
+        }
+        for (p, _) in &points {
+            min_x = min_x.min(p.x);
+            min_y = min_y.min(p.y);
+            max_x = max_x.max(p.x);
+            max_y = max_y.max(p.y);
+        }
+        let columns = ((max_x - min_x) / cell_px) as usize + 1;
+        let rows = ((max_y - min_y) / cell_px) as usize + 1;
+        let mut grid = Self {
+            cell_px,
+            min_x,
+            min_y,
+            columns,
+            rows,
+            starts: vec![0; columns * rows + 1],
+            points: Vec::with_capacity(points.len()),
+        };
+        let cells: Vec<usize> = points
+            .iter()
+            .map(|(p, _)| {
+                let (column, row) = grid.cell_of(p.x, p.y);
+                column + row * columns
+            })
+            .collect();
+        for &c in &cells {
+            grid.starts[c + 1] += 1;
+        }
+        for c in 0..columns * rows {
+            grid.starts[c + 1] += grid.starts[c];
+        }
+        let mut order: Vec<usize> = (0..points.len()).collect();
+        order.sort_by_key(|&i| (cells[i], i));
+        grid.points = order.into_iter().map(|i| points[i]).collect();
+        grid
+    }
+
+    /// Column and row of the cell holding (x, y), clamped to the grid.
+    fn cell_of(&self, x: f64, y: f64) -> (usize, usize) {
+        let column = ((x - self.min_x) / self.cell_px).floor().max(0.0) as usize;
+        let row = ((y - self.min_y) / self.cell_px).floor().max(0.0) as usize;
+        (column.min(self.columns - 1), row.min(self.rows - 1))
+    }
+
+    /// Points in the cells overlapping the box `x +- half`, `y +- half` (a superset of the box).
+    pub(crate) fn near(
+        &self,
+        x: f64,
+        y: f64,
+        half: f64,
+    ) -> impl Iterator<Item = &(RectPoint, usize)> {
+        let (c0, r0) = self.cell_of(x - half, y - half);
+        let (c1, r1) = self.cell_of(x + half, y + half);
+        (r0..=r1).flat_map(move |r| {
+            let row = r * self.columns;
+            self.points[self.starts[row + c0]..self.starts[row + c1 + 1]].iter()
+        })
+    }
+
+    pub(crate) fn any_in_box(&self, x: f64, y: f64, half: f64) -> bool {
+        self.near(x, y, half)
+            .any(|(p, _)| (p.x - x).abs() <= half && (p.y - y).abs() <= half)
+    }
+
+    /// Up to `k` points nearest to (x, y), except index `skip`; nearest first.
+    pub(crate) fn nearest(&self, x: f64, y: f64, k: usize, skip: usize) -> Vec<RectPoint> {
+        self.nearest_indexed(x, y, k, skip)
+            .into_iter()
+            .map(|(p, _)| p)
+            .collect()
+    }
+
+    /// Up to `k` points nearest to (x, y) with their indices, except index `skip`; nearest
+    /// first. Exact: every point within the search radius is seen before the radius is trusted.
+    pub(crate) fn nearest_indexed(
+        &self,
+        x: f64,
+        y: f64,
+        k: usize,
+        skip: usize,
+    ) -> Vec<(RectPoint, usize)> {
+        let mut half = self.cell_px;
+        loop {
+            let mut found: Vec<(f64, (RectPoint, usize))> = self
+                .near(x, y, half)
+                .filter(|(_, i)| *i != skip)
+                .map(|&(p, i)| ((p.x - x).hypot(p.y - y), (p, i)))
+                .filter(|(d, _)| *d <= half)
+                .collect();
+            let everything = half > self.cell_px * (self.columns + self.rows) as f64;
+            if found.len() >= k || everything {
+                found.sort_by(|a, b| a.0.total_cmp(&b.0));
+                return found.into_iter().take(k).map(|(_, p)| p).collect();
+            }
+            half *= 2.0;
+        }
+    }
+}
+
+/// Point indices sorted by x, so a box query costs a binary search plus its hits.
+pub(crate) struct SortedByX {
+    order: Vec<(f64, usize)>,
+}
+
+impl SortedByX {
+    pub(crate) fn new(points: impl Iterator<Item = RectPoint>) -> Self {
+        let mut order: Vec<(f64, usize)> = points.enumerate().map(|(i, p)| (p.x, i)).collect();
+        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        Self { order }
+    }
+
+    pub(crate) fn within(&self, min_x: f64, max_x: f64) -> impl Iterator<Item = usize> + '_ {
+        let start = self.order.partition_point(|(x, _)| *x < min_x);
+        self.order[start..]
+            .iter()
+            .take_while(move |(x, _)| *x <= max_x)
+            .map(|(_, i)| *i)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn median_of_odd_even_and_no_values() {
+        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert_eq!(median(&mut [5.0, 5.0, -1.0, 7.0, 5.0, 0.5]), 5.0);
+        assert_eq!(median(&mut []), 0.0);
+    }
+
+    #[test]
+    fn per_particle_loser_goes_unmatched_one_to_one_gets_next_best() {
+        let candidates = vec![(0.1, 0, 0), (0.2, 1, 0), (0.5, 1, 1)];
+        assert_eq!(
+            assign(candidates.clone(), 2, 2, Assignment::PerParticle),
+            vec![(0, 0)]
+        );
+        assert_eq!(
+            assign(candidates, 2, 2, Assignment::OneToOne),
+            vec![(0, 0), (1, 1)]
+        );
+    }
+}
