@@ -28,7 +28,7 @@ pub fn parse(path: &Path, text: &str) -> Result<PipelineConfig, ConfigError> {
     })?;
     config.validate().map_err(|error| ConfigError::Invalid {
         path: path.to_path_buf(),
-        error,
+        error: PipelineError::Config(error),
     })?;
     Ok(config)
 }
@@ -88,5 +88,23 @@ mod tests {
         let huge = format!("[velocity]\nhalf_window_frames = {}\n", u64::MAX);
         let e = parse(Path::new("c.toml"), &huge).unwrap_err().to_string();
         assert!(e.contains("half_window_frames"), "{e}");
+    }
+
+    #[test]
+    fn the_tracks_keys_live_in_the_link_table() {
+        let text = "[link]\nbox_half_side_px = 25\nrejoin_frames = 3\nrejoin_tolerance_px = 4.5\n";
+        let config = parse(Path::new("c.toml"), text).expect("valid");
+        assert_eq!(config.link.box_half_side_px, 25.0);
+        assert_eq!(config.tracks.rejoin_frames, 3);
+        assert_eq!(config.tracks.rejoin_tolerance_px, 4.5);
+        assert!(to_toml(&config).contains("[link]\nbox_half_side_px = 25.0"));
+        assert!(!to_toml(&config).contains("[tracks]"));
+        let e = parse(Path::new("c.toml"), "[link]\nrejoin_framez = 3\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("c.toml") && e.contains("rejoin_framez") && e.contains("`rejoin_frames`"),
+            "{e}"
+        );
     }
 }

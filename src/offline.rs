@@ -12,14 +12,14 @@ use nalgebra::Isometry3;
 use mrptv_engine::eval::{evaluate, EvalError, EvalOptions, Report};
 
 use crate::protocol::Encoding;
+use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
+use crate::rerun_log::{FrameLog, RerunLogger};
+use crate::tables::{self, TrackRow};
+use mrptv_engine::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
 use mrptv_engine::{
     FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
     StereoSearch,
 };
-use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
-use crate::rerun_log::{FrameLog, RerunLogger};
-use mrptv_engine::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
-use crate::tables::{self, TrackRow};
 
 #[derive(Debug, thiserror::Error)]
 pub enum OfflineError {
@@ -224,10 +224,10 @@ impl RunTotals {
             } else {
                 String::new()
             };
-        let rejoins = if config.link.rejoin_frames > 0 {
+        let rejoins = if config.tracks.rejoin_frames > 0 {
             format!(
                 "; broken 3D tracks rejoined across up to {} missing frames ({:.1} per frame)",
-                config.link.rejoin_frames,
+                config.tracks.rejoin_frames,
                 ratio(self.counts.rejoined, self.frames)
             )
         } else {

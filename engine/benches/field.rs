@@ -8,8 +8,8 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use mrptv::protocol::{Convention, FieldMessage, ServerMessage};
 use mrptv_engine::field::{CellSummary, StreamField};
-use mrptv_engine::{ImageView, Pipeline, PipelineConfig, StereoFrame, VelocityVector};
 use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::{ImageView, Pipeline, PipelineConfig, StereoFrame, VelocityVector};
 
 const FRAMES: usize = 32;
 /// Frames between two `field` messages: one a second at 30 Hz.

@@ -14,8 +14,8 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use mrptv_engine::detect::{DetectConfig, Detector};
-use mrptv_engine::{ImageView, Pipeline, PipelineConfig, StereoFrame};
 use mrptv_engine::synth::{parallel_rig, Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::{ImageView, Pipeline, PipelineConfig, StereoFrame};
 
 const FRAMES: usize = 32;
 

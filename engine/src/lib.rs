@@ -3,21 +3,24 @@
 //! Two synchronized grayscale cameras in, 3D particle velocities out (Chivers 2023, MR-PTV).
 //! Pure and synchronous: no I/O, no clock, no async.
 
+pub mod config;
 pub mod detect;
 pub mod eval;
 pub mod field;
 mod frame;
-mod spatial;
 pub mod geometry;
-pub mod kinematics;
 pub mod link;
 pub mod pipeline;
+mod spatial;
 pub mod stereo;
 pub mod synth;
+pub mod tracks;
+pub mod velocity;
 
 pub use detect::{Detection, Detector};
 pub use frame::{ImageView, StereoFrame};
 pub use pipeline::{
-    FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError, VelocityVector,
+    FrameOutput, FrameStats, MatchedPoint, Pipeline, PipelineConfig, PipelineError,
 };
 pub use stereo::StereoSearch;
+pub use velocity::VelocityVector;

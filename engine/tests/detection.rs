@@ -1,10 +1,10 @@
 //! Sub-pixel detection accuracy on isolated synthetic particles, with and without a strong
 //! illumination gradient.
 
-use mrptv_engine::geometry::PixelPoint;
 use mrptv_engine::detect::{DetectConfig, Detector};
-use mrptv_engine::ImageView;
+use mrptv_engine::geometry::PixelPoint;
 use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
+use mrptv_engine::ImageView;
 
 /// RMS centroid error (px) over isolated particles, and the fraction of them detected.
 fn centroid_error(spec: ScenarioSpec, config: &DetectConfig) -> (f64, f64, usize) {

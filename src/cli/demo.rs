@@ -2,11 +2,11 @@
 
 use anyhow::{bail, Result};
 
-use mrptv_engine::eval::EvalOptions;
 use mrptv::offline::{self, Wire};
 use mrptv::protocol::Encoding;
-use mrptv_engine::PipelineConfig;
+use mrptv_engine::eval::EvalOptions;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 
 use super::args::DepthRange;
 use super::progress_bar;

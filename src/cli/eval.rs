@@ -4,8 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Result};
 
-use mrptv_engine::eval::{evaluate, EvalOptions};
 use mrptv::tables;
+use mrptv_engine::eval::{evaluate, EvalOptions};
 
 #[derive(clap::Args)]
 pub struct Args {

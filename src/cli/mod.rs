@@ -21,8 +21,8 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use mrptv_engine::PipelineConfig;
 use mrptv_engine::synth::Scenario;
+use mrptv_engine::PipelineConfig;
 
 /// The scenario list shown below `synth --help` and `demo --help`.
 pub fn scenario_help() -> String {

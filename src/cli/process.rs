@@ -6,12 +6,12 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use mrptv::offline::{self, ProcessSinks, Sink};
-use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
-use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::tables::{self, TrackRow};
 use mrptv::vtk::{self, VtkFormat};
+use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
+use mrptv_engine::PipelineConfig;
 
 use super::args::DepthRange;
 use super::{create_output, method_config, progress_bar, runtime, termination};

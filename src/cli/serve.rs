@@ -7,12 +7,12 @@ use anyhow::{Context, Result};
 
 use mrptv::client::{self, ReplayOptions, SyntheticSource};
 use mrptv::protocol::Encoding;
-use mrptv_engine::field::StreamField;
-use mrptv_engine::PipelineConfig;
 use mrptv::rerun_log::{start_proxy, RerunOptions, RerunSink};
 use mrptv::server::{self, FieldOptions, ServerOptions};
-use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv::tls::ServerTls;
+use mrptv_engine::field::StreamField;
+use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 
 use super::args::{lan_address, setup_tls, DepthRange, GuardArgs, TlsArgs};
 use super::{init_logging, method_config, runtime, termination};

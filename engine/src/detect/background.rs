@@ -45,7 +45,12 @@ impl Background {
     /// image is measured ([`Self::commit`]). A pixel brighter than its model raises it only
     /// after `DELAY_FRAMES` frames in a row, so a particle passing over it leaves the model (and
     /// its own centroid) untouched.
-    pub(super) fn subtract_row(&mut self, row: std::ops::Range<usize>, blurred: &mut [u16], rise: u16) {
+    pub(super) fn subtract_row(
+        &mut self,
+        row: std::ops::Range<usize>,
+        blurred: &mut [u16],
+        rise: u16,
+    ) {
         for (((d, &b), next), bright) in blurred
             .iter_mut()
             .zip(&self.model[row.clone()])

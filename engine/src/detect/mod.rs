@@ -11,6 +11,7 @@
 //! 5. [`expected`]: a region fitted again where the tracks expect more particles than its shape
 //!    showed ([`Detector::separate_expected`]).
 
+use crate::config::{check_non_negative, ConfigError};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::PixelPoint;
@@ -114,6 +115,51 @@ impl Default for DetectConfig {
             fit_overlaps: true,
             separate_expected: true,
         }
+    }
+}
+
+impl DetectConfig {
+    /// The published method: every region as it comes (no split, no fit, none dropped for its
+    /// shape or the border), C alone, no background model.
+    pub fn method() -> Self {
+        Self {
+            split_touching: false,
+            fit_overlaps: false,
+            separate_expected: false,
+            reject_border: false,
+            max_axis_ratio: 0.0,
+            noise_sigmas: 0.0,
+            background_rise_per_frame: 0.0,
+            ..Self::default()
+        }
+    }
+
+    /// Refuses values no run can use, naming the key as the config file spells it.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check_non_negative(
+            "detect",
+            &[
+                ("split_dip_fraction", self.split_dip_fraction),
+                ("noise_sigmas", self.noise_sigmas),
+                ("background_rise_per_frame", self.background_rise_per_frame),
+            ],
+        )?;
+        let bad = |key, reason| Err(ConfigError::invalid("detect", key, reason));
+        if !self.contrast_c.is_finite() || self.contrast_c.abs() > 255.0 {
+            return bad(
+                "contrast_c",
+                "must be a number of grey levels in -255..=255",
+            );
+        }
+        // The summed-area tables are i32; 101 keeps every sum far inside that range.
+        let box_size = self.box_size_px;
+        if !(3..=101).contains(&box_size) || box_size.is_multiple_of(2) {
+            return bad("box_size_px", "must be odd and in 3..=101");
+        }
+        if self.min_area_px > self.max_area_px {
+            return bad("min_area_px", "must not exceed detect.max_area_px");
+        }
+        Ok(())
     }
 }
 

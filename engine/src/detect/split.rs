@@ -165,11 +165,7 @@ fn k_means(
 
 /// Splits region `label` between its separated peaks of the blurred image; `None` when it has
 /// one peak, or peaks joined without a real dip (a flat-topped disc with noise).
-fn split_at_peaks(
-    context: &Context<'_>,
-    region: &[Pixel],
-    label: u32,
-) -> Option<Vec<Vec<Pixel>>> {
+fn split_at_peaks(context: &Context<'_>, region: &[Pixel], label: u32) -> Option<Vec<Vec<Pixel>>> {
     let b = context.blurred;
     let (peaks, floor) = peaks_of(context, region, label);
     // Keep the highest peak of every group whose members are joined without a real dip.

@@ -51,7 +51,12 @@ impl FirstSteps {
     /// the one whose votes are least likely from features scattered at this frame's density,
     /// and only if chance explains them less than once in a thousand. `None` otherwise: no
     /// evidence beats a guess.
-    pub(super) fn consensus_step(&self, t: usize, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
+    pub(super) fn consensus_step(
+        &self,
+        t: usize,
+        last: RectPoint,
+        config: &LinkConfig,
+    ) -> Option<(f64, f64)> {
         const CONSENSUS_NEIGHBOURS: usize = 8;
         const CHANCE: f64 = 1e-3;
         let reach = config.max_displacement_px;
@@ -106,7 +111,11 @@ impl FirstSteps {
     /// detection, predicts a detection in this frame best at constant velocity, within
     /// `TURN_PER_FRAME` of the step. Without it a particle moving more than the linking box per
     /// frame through a rotating flow starts a new track every frame.
-    pub(super) fn three_frame_step(&self, last: RectPoint, config: &LinkConfig) -> Option<(f64, f64)> {
+    pub(super) fn three_frame_step(
+        &self,
+        last: RectPoint,
+        config: &LinkConfig,
+    ) -> Option<(f64, f64)> {
         let reach = config.max_displacement_px;
         let mut best: Option<(f64, (f64, f64))> = None;
         for (before, _) in self.lone_before.near(last.x, last.y, reach) {
@@ -172,5 +181,16 @@ mod tests {
         assert!((binomial_tail(2, 2, 0.5) - 0.25).abs() < 1e-12);
         assert!((binomial_tail(3, 2, 0.5) - 0.5).abs() < 1e-12);
         assert!(binomial_tail(8, 5, 0.01) < 1e-7);
+    }
+
+    #[test]
+    fn votes_needed_is_the_fewest_that_chance_explains_too_rarely() {
+        for n in 2..=8 {
+            for p in [1e-4, 0.01, 0.05, 0.1, 0.2, 0.4, 0.7] {
+                let direct = (2..=n).find(|&v| binomial_tail(n, v, p) < 1e-3);
+                assert_eq!(votes_needed(n, p, 1e-3), direct, "n {n}, p {p}");
+            }
+        }
+        assert_eq!(votes_needed(8, 0.7, 1e-3), None);
     }
 }

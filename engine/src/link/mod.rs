@@ -14,6 +14,7 @@
 //! also make, within `max_displacement_px`. Both are local, so a vortex's fast rim and slow core
 //! both link, and both are re-learnt every frame.
 
+use crate::config::{check_non_negative, ConfigError};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::RectPoint;
@@ -21,11 +22,14 @@ use crate::spatial::{assign, median, normalising_mean, PointGrid, SortedByX, GRI
 
 mod first_steps;
 
-use first_steps::FirstSteps;
 pub use crate::spatial::Assignment;
+use first_steps::FirstSteps;
 
+/// Per-camera linking parameters (the file's `[link]` table, with [`TrackConfig`]'s keys).
+///
+/// [`TrackConfig`]: crate::tracks::TrackConfig
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default)]
 pub struct LinkConfig {
     /// Half-side H of the hard search box around the prediction, rectified pixels. Must exceed the
     /// largest prediction error, and the largest per-frame displacement for a track's first link.
@@ -50,24 +54,13 @@ pub struct LinkConfig {
     /// Frames a track must stay within 1 px of one point to be taken for a fixture (hot pixel,
     /// LED, glint, print on a poster) and left out of stereo matching: a causal model of what
     /// is static in the image, learnt per camera. A particle moving under 0.1 px per frame for
-    /// this long is taken for one too. 0 keeps every feature (the method). Measured on the
-    /// cluttered scene: ghosts 55.3 % without, 1.9 % with.
+    /// this long is taken for one too. 0 keeps every feature (the method): a room's lamps,
+    /// LEDs and posters then become ghosts.
     pub fixture_frames: u32,
     /// Largest per-frame image motion a new track's first link is searched for by neighbour
     /// consensus, rectified pixels (with `predict_new_from_neighbours`; 0 turns consensus off).
     /// Well above the fastest flow a 640-pixel view can follow for a velocity window.
     pub max_displacement_px: f64,
-    /// Frames a 3D track may go without a stereo pair and still be continued by a new one (a
-    /// new track in either camera, or a new partner): the new pair must lie where the track's
-    /// recent path in the world predicts, within `rejoin_tolerance_px` across the line of sight
-    /// and `rejoin_tolerance_sigmas` depth-noise sigmas along it. A per-camera track breaks
-    /// where particles cross or crowd; without this its 3D track, and the velocity window,
-    /// ended there. 0 keeps a 3D track only while both camera tracks go on (the method).
-    pub rejoin_frames: u32,
-    /// How far across the line of sight a rejoining pair may lie from the prediction, pixels.
-    pub rejoin_tolerance_px: f64,
-    /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
-    pub rejoin_tolerance_sigmas: f64,
 }
 
 impl Default for LinkConfig {
@@ -83,10 +76,36 @@ impl Default for LinkConfig {
             max_gap_frames: 2,
             max_displacement_px: 100.0,
             fixture_frames: 10,
-            rejoin_frames: 2,
-            rejoin_tolerance_px: 3.0,
-            rejoin_tolerance_sigmas: 12.0,
         }
+    }
+}
+
+impl LinkConfig {
+    /// The published method: each particle takes its own cheapest candidate, a new track
+    /// predicts it stands still, no gap is closed, nothing is taken for a fixture.
+    pub fn method() -> Self {
+        Self {
+            assignment: Assignment::PerParticle,
+            predict_new_from_neighbours: false,
+            max_gap_frames: 0,
+            max_displacement_px: 0.0,
+            fixture_frames: 0,
+            ..Self::default()
+        }
+    }
+
+    /// Refuses values no run can use, naming the key as the config file spells it.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check_non_negative(
+            "link",
+            &[
+                ("box_half_side_px", self.box_half_side_px),
+                ("weight_diameter", self.weight_diameter),
+                ("weight_brightness", self.weight_brightness),
+                ("weight_x", self.weight_x),
+                ("max_displacement_px", self.max_displacement_px),
+            ],
+        )
     }
 }
 
@@ -699,16 +718,5 @@ mod tests {
             .last()
             .expect("six frames");
         assert!(last.iter().any(|f| f.age == 1), "{last:?}");
-    }
-
-    #[test]
-    fn votes_needed_is_the_fewest_that_chance_explains_too_rarely() {
-        for n in 2..=8 {
-            for p in [1e-4, 0.01, 0.05, 0.1, 0.2, 0.4, 0.7] {
-                let direct = (2..=n).find(|&v| binomial_tail(n, v, p) < 1e-3);
-                assert_eq!(votes_needed(n, p, 1e-3), direct, "n {n}, p {p}");
-            }
-        }
-        assert_eq!(votes_needed(8, 0.7, 1e-3), None);
     }
 }

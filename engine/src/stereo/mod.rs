@@ -15,13 +15,14 @@
 //! (its true partner hidden by an overlap) loses as soon as the true partner is back, while a true
 //! pair survives a single noisy frame.
 
+use crate::config::{check_non_negative, ConfigError};
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::Rectification;
 use crate::link::{CostScale, Feature, LinkedFeature};
 use crate::spatial::{assign, normalising_mean, Assignment, SortedByX};
-use crate::geometry::Rectification;
 
 mod depth;
 
@@ -82,6 +83,61 @@ impl Default for StereoConfig {
             pair_memory: 0.8,
             learn_depth_range: true,
         }
+    }
+}
+
+impl StereoConfig {
+    /// The published method: search ranges as image fractions (K = 0.25, S = 0.01), each
+    /// particle its own cheapest candidate, every frame decided afresh, rows weighed as the
+    /// other terms.
+    pub fn method() -> Self {
+        Self {
+            assignment: Assignment::PerParticle,
+            pair_memory: 0.0,
+            weight_row: 1.0,
+            disparity_range_fraction: Some(0.25),
+            epipolar_band_fraction: Some(0.01),
+            learn_depth_range: false,
+            ..Self::default()
+        }
+    }
+
+    /// Refuses values no run can use, naming the key as the config file spells it.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check_non_negative(
+            "stereo",
+            &[
+                (
+                    "disparity_range_fraction",
+                    self.disparity_range_fraction.unwrap_or(0.0),
+                ),
+                (
+                    "epipolar_band_fraction",
+                    self.epipolar_band_fraction.unwrap_or(0.0),
+                ),
+                ("weight_diameter", self.weight_diameter),
+                ("weight_speed", self.weight_speed),
+                ("weight_brightness", self.weight_brightness),
+                ("pair_memory", self.pair_memory),
+                ("weight_row", self.weight_row),
+            ],
+        )?;
+        let bad = |key, reason| Err(ConfigError::invalid("stereo", key, reason));
+        if !(self.epipolar_band_px.is_finite() && self.epipolar_band_px > 0.0) {
+            return bad("epipolar_band_px", "must be a finite number of pixels > 0");
+        }
+        if let Some([near_m, far_m]) = self.depth_range_m {
+            if !(near_m.is_finite() && near_m > 0.0 && far_m > near_m) {
+                return bad(
+                    "depth_range_m",
+                    "must be [near, far] metres with 0 < near < far (far may be inf)",
+                );
+            }
+        }
+        if self.pair_memory >= 1.0 {
+            return bad("pair_memory", "must be below 1 (1 would never update)");
+        }
+        Ok(())
     }
 }
 

@@ -1,0 +1,348 @@
+//! Stage 4: 3D tracks. Each frame's stereo pairs, triangulated, continue the 3D tracks of their
+//! camera tracks; a pair no live 3D track continues is a new particle, unless it lies where a
+//! broken 3D track's recent path predicts ([`rejoin`]). A 3D track survives a gap as long as its
+//! left camera track coasts, and is then retired and kept the `M` frames its last samples may
+//! still centre a velocity window on.
+
+use std::collections::{BTreeMap, VecDeque};
+
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::config::{check_non_negative, ConfigError};
+use crate::detect::Separation;
+use crate::geometry::{RectPoint, Rectification};
+use crate::pipeline::{MatchedPoint, PipelineConfig};
+
+mod rejoin;
+
+/// How broken 3D tracks are rejoined (the file keeps these keys in `[link]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrackConfig {
+    /// Frames a 3D track may go without a stereo pair and still be continued by a new one (a
+    /// new track in either camera, or a new partner): the new pair must lie where the track's
+    /// recent path in the world predicts, within `rejoin_tolerance_px` across the line of sight
+    /// and `rejoin_tolerance_sigmas` depth-noise sigmas along it. A per-camera track breaks
+    /// where particles cross or crowd; without this its 3D track, and the velocity window,
+    /// ended there. 0 keeps a 3D track only while both camera tracks go on (the method).
+    pub rejoin_frames: u32,
+    /// How far across the line of sight a rejoining pair may lie from the prediction, pixels.
+    pub rejoin_tolerance_px: f64,
+    /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
+    pub rejoin_tolerance_sigmas: f64,
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        Self {
+            rejoin_frames: 2,
+            rejoin_tolerance_px: 3.0,
+            rejoin_tolerance_sigmas: 12.0,
+        }
+    }
+}
+
+impl TrackConfig {
+    /// The published method: a 3D track lives only while both its camera tracks do.
+    pub fn method() -> Self {
+        Self {
+            rejoin_frames: 0,
+            ..Self::default()
+        }
+    }
+
+    /// Refuses values no run can use, naming the key as the config file spells it.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check_non_negative(
+            "link",
+            &[
+                ("rejoin_tolerance_px", self.rejoin_tolerance_px),
+                ("rejoin_tolerance_sigmas", self.rejoin_tolerance_sigmas),
+            ],
+        )
+    }
+}
+
+/// One triangulated particle of one frame, as a 3D track holds it.
+#[derive(Debug, Clone)]
+pub(crate) struct Sample {
+    /// Position in the sequence of pushed frames (frame indices may skip).
+    pub(crate) seq: u64,
+    pub(crate) frame_index: u64,
+    pub(crate) t_s: f64,
+    pub(crate) point_in_world: Point3<f64>,
+    pub(crate) depth_m: f64,
+    /// The less exact of the two cameras' separations: what the sample is good for.
+    pub(crate) separation: Separation,
+    /// Where the left camera saw it, rectified: how far the particle moves in the image.
+    pub(crate) left_rect: RectPoint,
+    /// The left camera's centre when it did: the line of sight, along which noise is largest.
+    pub(crate) camera_in_world: Point3<f64>,
+}
+
+impl Sample {
+    /// An offset from this sample split along the left camera's line of sight (signed, where
+    /// depth noise is largest) and across it (squared length, where centroid noise is).
+    pub(crate) fn along_and_across_sq(&self, offset: &Vector3<f64>) -> (f64, f64) {
+        let sight = (self.point_in_world - self.camera_in_world)
+            .try_normalize(1e-12)
+            .unwrap_or_else(Vector3::z);
+        let along = offset.dot(&sight);
+        (along, (offset.norm_squared() - along * along).max(0.0))
+    }
+}
+
+/// A particle's 3D track: its samples of the recent frames, oldest first.
+#[derive(Debug, Clone)]
+pub(crate) struct Track3d {
+    pub(crate) id: u64,
+    /// The right camera track it is paired with now.
+    pub(crate) right_track: u64,
+    pub(crate) samples: VecDeque<Sample>,
+}
+
+impl Track3d {
+    /// The frame sequence number of its newest sample.
+    pub(crate) fn last_seq(&self) -> u64 {
+        self.samples.back().map_or(0, |s| s.seq)
+    }
+}
+
+/// A stereo pair of this frame, triangulated: the camera tracks it belongs to, the sample it
+/// gives and the point it is reported as.
+pub(crate) struct Pair {
+    pub(crate) left_track: u64,
+    pub(crate) right_track: u64,
+    pub(crate) sample: Sample,
+    pub(crate) point: MatchedPoint,
+}
+
+/// Where a 3D track without a pair this frame came from, so it can go back if no new pair
+/// rejoins it.
+#[derive(Debug, Clone, Copy)]
+enum Orphan {
+    /// Still live under this left track id (coasting through a gap).
+    Coasting(u64),
+    /// Its left track (this id) paired with a new partner this frame.
+    Replaced(u64),
+    /// Already retired.
+    Retired,
+}
+
+/// What the 3D tracks take from the other stages' settings.
+#[derive(Debug, Clone, Copy)]
+struct Limits {
+    /// Frames a left camera track may coast (`link.max_gap_frames`).
+    max_gap_frames: u64,
+    /// Frames of history kept behind a track's newest sample (what velocity windows reach).
+    history_frames: u64,
+    /// Frames a retired track is kept (M: its last samples may still centre a window).
+    retired_frames: u64,
+    /// A left track that changes partner starts a new 3D track (`stereo.pair_memory` > 0).
+    partner_defines_track: bool,
+    /// Largest per-frame image motion of a track's first steps (`link.max_displacement_px`).
+    max_displacement_px: f64,
+    /// Disparity noise of the depth model (`velocity.disparity_sigma_px`).
+    disparity_sigma_px: f64,
+}
+
+/// The 3D tracks: live ones keyed by their left camera track, and retired ones still in reach
+/// of a velocity window.
+#[derive(Debug, Clone)]
+pub(crate) struct Tracks {
+    config: TrackConfig,
+    limits: Limits,
+    live: BTreeMap<u64, Track3d>,
+    retired: Vec<Track3d>,
+    next_id: u64,
+}
+
+impl Tracks {
+    /// No tracks yet, with the settings of `config`.
+    pub(crate) fn new(config: &PipelineConfig) -> Self {
+        let v = &config.velocity;
+        let m = v.half_window_frames;
+        Self {
+            config: config.tracks.clone(),
+            limits: Limits {
+                max_gap_frames: u64::from(config.link.max_gap_frames),
+                history_frames: (m + m.max(v.line_past_frames)) as u64,
+                retired_frames: m as u64,
+                partner_defines_track: config.stereo.pair_memory != 0.0,
+                max_displacement_px: config.link.max_displacement_px,
+                disparity_sigma_px: v.disparity_sigma_px,
+            },
+            live: BTreeMap::new(),
+            retired: Vec::new(),
+            next_id: 0,
+        }
+    }
+
+    /// Live tracks, then retired ones.
+    pub(crate) fn all(&self) -> impl Iterator<Item = &Track3d> {
+        self.live.values().chain(&self.retired)
+    }
+
+    /// How many tracks are live.
+    pub(crate) fn live_count(&self) -> usize {
+        self.live.len()
+    }
+
+    /// The depths of the live tracks seen in frame `seq` for at least `samples` samples.
+    pub(crate) fn confirmed_depths(
+        &self,
+        seq: u64,
+        samples: usize,
+    ) -> impl Iterator<Item = f64> + '_ {
+        self.live.values().filter_map(move |t| {
+            let last = t.samples.back()?;
+            (last.seq == seq && t.samples.len() >= samples).then_some(last.depth_m)
+        })
+    }
+
+    /// Takes frame `seq`'s pairs (time `t_s`) into the tracks; appends each pair's point, with
+    /// its 3D track, to `points`, and returns how many pairs rejoined a broken track.
+    pub(crate) fn update(
+        &mut self,
+        seq: u64,
+        t_s: f64,
+        pairs: Vec<Pair>,
+        rect: &Rectification,
+        points: &mut Vec<MatchedPoint>,
+    ) -> usize {
+        let mut continued = BTreeMap::new();
+        let mut births: Vec<Pair> = Vec::new();
+        let mut orphans: Vec<(Orphan, Track3d)> = Vec::new();
+        for pair in pairs {
+            match self.live.remove(&pair.left_track) {
+                // Without track-consistent pairing (the method) a left track keeps its 3D track
+                // whatever its partner; with it, a new partner means a new particle.
+                Some(track)
+                    if track.right_track == pair.right_track
+                        || !self.limits.partner_defines_track =>
+                {
+                    self.extend(track, pair, points, &mut continued);
+                }
+                dropped => {
+                    if let Some(track) = dropped {
+                        orphans.push((Orphan::Replaced(pair.left_track), track));
+                    }
+                    births.push(pair);
+                }
+            }
+        }
+        if self.config.rejoin_frames > 0 && !births.is_empty() {
+            self.gather_recent_orphans(seq, &mut orphans);
+        }
+        let rejoined = self.settle_births(births, orphans, t_s, rect, points, &mut continued);
+        self.retire_unseen(seq, continued);
+        rejoined
+    }
+
+    /// Adds a pair's sample to `track` (its partner now the pair's) and keeps the track among
+    /// this frame's `continued`, under the pair's left track.
+    fn extend(
+        &self,
+        mut track: Track3d,
+        pair: Pair,
+        points: &mut Vec<MatchedPoint>,
+        continued: &mut BTreeMap<u64, Track3d>,
+    ) {
+        track.right_track = pair.right_track;
+        points.push(MatchedPoint {
+            track_id: track.id,
+            ..pair.point
+        });
+        push_sample(&mut track, pair.sample, self.limits.history_frames);
+        continued.insert(pair.left_track, track);
+    }
+
+    /// Moves the live tracks that a new pair may still rejoin (unseen for at most
+    /// `rejoin_frames`) and the recently retired ones into `orphans`.
+    fn gather_recent_orphans(&mut self, seq: u64, orphans: &mut Vec<(Orphan, Track3d)>) {
+        let reach = u64::from(self.config.rejoin_frames) + 1;
+        for (left_track, track) in std::mem::take(&mut self.live) {
+            if seq - track.last_seq() <= reach {
+                orphans.push((Orphan::Coasting(left_track), track));
+            } else {
+                self.live.insert(left_track, track);
+            }
+        }
+        let (recent, old): (Vec<Track3d>, Vec<Track3d>) = std::mem::take(&mut self.retired)
+            .into_iter()
+            .partition(|t| seq - t.last_seq() <= reach);
+        self.retired = old;
+        orphans.extend(recent.into_iter().map(|t| (Orphan::Retired, t)));
+    }
+
+    /// Gives each new pair the orphan it rejoins, or a new track; returns the orphans no pair
+    /// took to where they came from, and counts the rejoined pairs.
+    #[allow(clippy::too_many_arguments)]
+    fn settle_births(
+        &mut self,
+        births: Vec<Pair>,
+        orphans: Vec<(Orphan, Track3d)>,
+        t_s: f64,
+        rect: &Rectification,
+        points: &mut Vec<MatchedPoint>,
+        continued: &mut BTreeMap<u64, Track3d>,
+    ) -> usize {
+        let joins = rejoin::rejoin(&self.config, &self.limits, rect, &births, &orphans, t_s);
+        let rejoined = joins.iter().flatten().count();
+        let mut orphans: Vec<Option<(Orphan, Track3d)>> = orphans.into_iter().map(Some).collect();
+        for (birth, join) in births.into_iter().zip(joins) {
+            let track = match join.and_then(|j| rejoin::take_joined(&mut orphans, j)) {
+                Some(track) => track,
+                None => {
+                    self.next_id += 1;
+                    Track3d {
+                        id: self.next_id,
+                        right_track: birth.right_track,
+                        samples: VecDeque::new(),
+                    }
+                }
+            };
+            self.extend(track, birth, points, continued);
+        }
+        for (kind, track) in orphans.into_iter().flatten() {
+            match kind {
+                Orphan::Coasting(left_track) => {
+                    self.live.insert(left_track, track);
+                }
+                Orphan::Replaced(_) | Orphan::Retired => self.retired.push(track),
+            }
+        }
+        rejoined
+    }
+
+    /// Makes this frame's `continued` tracks the live ones. A live track unseen this frame
+    /// survives a gap as long as its left track may coast; after that (or where its left track
+    /// id now leads another 3D track) it is retired, and kept M frames for the centred vectors
+    /// its last samples still give.
+    fn retire_unseen(&mut self, seq: u64, mut continued: BTreeMap<u64, Track3d>) {
+        for (left_track, track) in std::mem::take(&mut self.live) {
+            if continued.contains_key(&left_track) {
+                self.retired.push(track);
+                continue;
+            }
+            if seq - track.last_seq() <= self.limits.max_gap_frames {
+                continued.insert(left_track, track);
+            } else {
+                self.retired.push(track);
+            }
+        }
+        self.live = continued;
+        let kept = self.limits.retired_frames;
+        self.retired.retain(|t| seq - t.last_seq() <= kept);
+    }
+}
+
+/// Appends `sample` to `track`, forgetting samples more than `history` frames older.
+fn push_sample(track: &mut Track3d, sample: Sample, history: u64) {
+    let oldest = sample.seq.saturating_sub(history);
+    track.samples.push_back(sample);
+    while track.samples.front().is_some_and(|s| s.seq < oldest) {
+        track.samples.pop_front();
+    }
+}
