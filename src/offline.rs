@@ -7,19 +7,15 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::Instant;
 
-use nalgebra::Isometry3;
-
 use mrptv_engine::eval::{evaluate, EvalError, EvalOptions, Report};
 
 use crate::protocol::Encoding;
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger};
 use crate::tables::{self, TrackRow};
+pub use mrptv_engine::health::{HealthFigures, RunHealth, RunTotals};
 use mrptv_engine::synth::{ScenarioSpec, SynthFrame, Synthesizer, TruthRow};
-use mrptv_engine::{
-    FrameOutput, FrameStats, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame,
-    StereoSearch,
-};
+use mrptv_engine::{FrameOutput, ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 
 #[derive(Debug, thiserror::Error)]
 pub enum OfflineError {
@@ -120,280 +116,6 @@ pub fn write_synthetic(
     Ok(summary)
 }
 
-/// Totals over a processing run.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct RunTotals {
-    pub frames: usize,
-    /// The frames' statistics, summed.
-    pub counts: FrameStats,
-    /// Time spent inside `Pipeline::push`, seconds.
-    pub pipeline_s: f64,
-    /// The stereo search the pipeline settled on.
-    pub stereo_search: Option<StereoSearch>,
-    /// The last search it narrowed to where the tracks were (`stereo.learn_depth_range`).
-    pub learnt_search: Option<StereoSearch>,
-}
-
-/// A run's health figures (see [`RunTotals::health`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct HealthFigures {
-    pub detections_per_image: f64,
-    /// Of all detections, those continuing a track from an earlier frame.
-    pub linked_fraction: f64,
-    /// Stereo candidates per left particle that had at least one.
-    pub stereo_candidates_per_particle: f64,
-    /// Of left detections, those matched in the right image.
-    pub matched_fraction: f64,
-    /// Of matched particles, those given a centred velocity.
-    pub velocity_fraction: f64,
-}
-
-impl RunTotals {
-    pub fn add(&mut self, s: &FrameStats, pipeline_s: f64) {
-        self.frames += 1;
-        self.counts += s;
-        self.pipeline_s += pipeline_s;
-    }
-
-    /// Empty totals that remember the stereo search `pipeline` settled on.
-    fn for_pipeline(pipeline: &Pipeline) -> Self {
-        Self {
-            stereo_search: Some(*pipeline.stereo_search()),
-            ..Default::default()
-        }
-    }
-
-    /// The run's health figures so far.
-    pub fn figures(&self) -> HealthFigures {
-        let detections = self.counts.detections_left + self.counts.detections_right;
-        HealthFigures {
-            detections_per_image: ratio(detections, 2 * self.frames),
-            linked_fraction: ratio(
-                self.counts.linked_left + self.counts.linked_right,
-                detections,
-            ),
-            stereo_candidates_per_particle: ratio(
-                self.counts.stereo_candidates,
-                self.counts.left_with_candidates,
-            ),
-            matched_fraction: ratio(self.counts.matches, self.counts.detections_left),
-            velocity_fraction: ratio(self.counts.vectors, self.counts.matches),
-        }
-    }
-
-    /// What a run settled on, how healthy it was, and in words what its figures say cannot be
-    /// trusted; a run that gave no vectors always gets a warning saying why.
-    pub fn health(&self, config: &PipelineConfig) -> RunHealth {
-        let detections = self.counts.detections_left + self.counts.detections_right;
-        let HealthFigures {
-            detections_per_image,
-            linked_fraction,
-            stereo_candidates_per_particle: candidates_per_particle,
-            matched_fraction,
-            velocity_fraction: vector_fraction,
-        } = self.figures();
-        let box_px = config.link.box_half_side_px;
-        let velocity = &config.velocity;
-        let window = 2 * velocity.half_window_frames + 1;
-        // A fast particle may have its velocity from as few as five frames.
-        let shortest_window = if velocity.min_window_travel_px > 0.0 {
-            window.min(5)
-        } else {
-            window
-        };
-        let mut search = self
-            .stereo_search
-            .map_or_else(|| "not set up".to_string(), |s| s.to_string());
-        if let Some(learnt) = self.learnt_search {
-            search += &format!(
-                ", narrowed to where the tracks are in {:.0} % of frames (last: depths \
-                 {:.3}..{:.3} m, disparity {:.1}..{:.1} px)",
-                100.0 * ratio(self.counts.learnt_search, self.frames),
-                learnt.near_m,
-                learnt.far_m,
-                learnt.min_disparity_px,
-                learnt.max_disparity_px
-            );
-        }
-        let first_steps =
-            if config.link.predict_new_from_neighbours && config.link.max_displacement_px > 0.0 {
-                format!(
-                    " (a new track's first step learnt from the images, up to {} px)",
-                    config.link.max_displacement_px
-                )
-            } else {
-                String::new()
-            };
-        let rejoins = if config.tracks.rejoin_frames > 0 {
-            format!(
-                "; broken 3D tracks rejoined across up to {} missing frames ({:.1} per frame)",
-                config.tracks.rejoin_frames,
-                ratio(self.counts.rejoined, self.frames)
-            )
-        } else {
-            String::new()
-        };
-        let windows = if shortest_window < window {
-            format!(
-                "{shortest_window} to {window} frames (narrower where a particle crosses {} px \
-                 within it)",
-                velocity.min_window_travel_px
-            )
-        } else {
-            format!("{window} frames")
-        };
-        let components = 3 * self.counts.vectors;
-        let fits = if velocity.adaptive_fit && components > 0 {
-            let c = &self.counts;
-            let line = if velocity.line_past_frames > velocity.half_window_frames {
-                format!(
-                    ", {:.0} % a line from {} frames back",
-                    100.0 * ratio(c.fit_components_line, components),
-                    velocity.line_past_frames
-                )
-            } else {
-                String::new()
-            };
-            format!(
-                ", fit per component: {:.0} % quadratic on the full window, {:.0} % on a \
-                 narrower one, {:.0} % cubic{line}",
-                100.0
-                    * ratio(
-                        components
-                            - c.fit_components_narrower
-                            - c.fit_components_cubic
-                            - c.fit_components_line,
-                        components
-                    ),
-                100.0 * ratio(c.fit_components_narrower, components),
-                100.0 * ratio(c.fit_components_cubic, components)
-            )
-        } else {
-            String::new()
-        };
-        let noisy = if self.counts.noisy_images > 0 {
-            format!(
-                " (raised for sensor noise in {:.0} % of images)",
-                100.0 * ratio(self.counts.noisy_images, 2 * self.frames)
-            )
-        } else {
-            String::new()
-        };
-        let background = if config.detect.background_rise_per_frame > 0.0 {
-            format!(
-                " after a background that learns what stands still (rising {} grey levels per \
-                 frame)",
-                config.detect.background_rise_per_frame
-            )
-        } else {
-            String::new()
-        };
-        let settled = format!(
-            "stereo search {search}; linking box +-{box_px} px{first_steps}{rejoins}; velocity \
-             window {windows}{fits}; threshold {} grey levels above the local mean{noisy}{background}",
-            -config.detect.contrast_c
-        );
-        let summary = format!(
-            "{detections_per_image:.1} detections/image, {:.0} % linked to an earlier frame, \
-             {candidates_per_particle:.2} stereo candidates per matchable particle, {:.0} % of \
-             left detections matched, {:.0} % of matched particles given a velocity, {:.1} \
-             fixtures/image (static spots left out)",
-            100.0 * linked_fraction,
-            100.0 * matched_fraction,
-            100.0 * vector_fraction,
-            ratio(self.counts.fixtures, 2 * self.frames)
-        );
-        let mut warnings = Vec::new();
-        if self.counts.vectors == 0 {
-            warnings.push(if self.frames == 0 {
-                "no vectors: the recording has no frames".to_string()
-            } else if detections == 0 {
-                format!(
-                    "no vectors: no particle was detected in any image (a particle must be {} grey \
-                     levels brighter than its 15 px neighbourhood, detect.contrast_c, and its \
-                     area within detect.min_area_px..max_area_px)",
-                    -config.detect.contrast_c
-                )
-            } else if self.counts.matches == 0 {
-                format!(
-                    "no vectors: particles were detected ({detections_per_image:.1} per image) but \
-                     none matched between the cameras, so none lay in the stereo search: {search}; \
-                     check rig.json, or give the measurement volume with --depth-range"
-                )
-            } else if self.frames < shortest_window {
-                format!(
-                    "no vectors: the recording has {} frames, and a centred velocity needs a \
-                     particle seen through {shortest_window} (velocity.half_window_frames = {})",
-                    self.frames, config.velocity.half_window_frames
-                )
-            } else {
-                format!(
-                    "no vectors: {} particles were matched between the cameras, but none was \
-                     followed through the {windows} a centred velocity needs ({:.0} % of \
-                     detections linked to an earlier frame): particles may move more than the \
-                     linking box (+-{box_px} px) per frame",
-                    self.counts.matches,
-                    100.0 * linked_fraction
-                )
-            });
-        } else {
-            if linked_fraction < 0.5 {
-                warnings.push(format!(
-                    "only {:.0} % of detections linked to an earlier frame: particles may move \
-                     more than the linking box (+-{box_px} px) per frame; vectors will be few",
-                    100.0 * linked_fraction
-                ));
-            }
-            // Only frames at least M from either end can carry a centred velocity.
-            let centred_frames = self.frames.saturating_sub(window - 1);
-            let possible = ratio(centred_frames, self.frames);
-            if vector_fraction < 0.2 * possible && linked_fraction >= 0.5 {
-                warnings.push(format!(
-                    "only {:.1} % of the particles matched in both cameras were given a velocity: \
-                     tracks break before the {windows} a centred velocity needs; particles \
-                     may move more than the linking box (+-{box_px} px) per frame",
-                    100.0 * vector_fraction
-                ));
-            }
-            if candidates_per_particle > 2.5 {
-                warnings.push(format!(
-                    "a matchable particle had {candidates_per_particle:.1} stereo candidates on \
-                     average: matches are ambiguous and ghosts likely; narrow --depth-range or \
-                     check the calibration"
-                ));
-            }
-            if matched_fraction < 0.3 {
-                warnings.push(format!(
-                    "only {:.0} % of left detections found a partner in the right image: check \
-                     rig.json and the stereo search ({search})",
-                    100.0 * matched_fraction
-                ));
-            }
-        }
-        RunHealth {
-            settled,
-            summary,
-            warnings,
-        }
-    }
-}
-
-fn ratio(a: usize, b: usize) -> f64 {
-    if b == 0 {
-        0.0
-    } else {
-        a as f64 / b as f64
-    }
-}
-
-/// A run's settled parameters and health figures in words, and its warnings.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RunHealth {
-    pub settled: String,
-    pub summary: String,
-    pub warnings: Vec<String>,
-}
-
 /// An output of `process_recording`, with the path its errors are reported against.
 pub struct Sink<'a> {
     pub path: &'a Path,
@@ -405,9 +127,7 @@ pub struct Sink<'a> {
 fn push_pixels(
     pipeline: &mut Pipeline,
     totals: &mut RunTotals,
-    index: u64,
-    t_s: f64,
-    world_from_rig: Option<Isometry3<f64>>,
+    entry: &FrameEntry,
     left: &[u8],
     right: &[u8],
 ) -> Result<FrameOutput, OfflineError> {
@@ -420,9 +140,9 @@ fn push_pixels(
         unreachable!("callers pass images decoded or rendered at the rig's size");
     };
     let frame = StereoFrame {
-        index,
-        t_s,
-        world_from_rig,
+        index: entry.index,
+        t_s: entry.t_s,
+        world_from_rig: entry.world_from_rig,
         left,
         right,
     };
@@ -480,15 +200,7 @@ pub fn process_recording(
         for loaded in rx {
             let (entry, (left, right)) = loaded?;
             let pipeline_s_before = totals.pipeline_s;
-            let output = push_pixels(
-                &mut pipeline,
-                &mut totals,
-                entry.index,
-                entry.t_s,
-                entry.world_from_rig,
-                &left,
-                &right,
-            )?;
+            let output = push_pixels(&mut pipeline, &mut totals, &entry, &left, &right)?;
             for v in &output.vectors {
                 tables::write_track_row(tracks, v).map_err(io_error(tracks_path))?;
             }
@@ -517,7 +229,80 @@ pub fn process_recording(
     Ok(totals)
 }
 
-/// A scenario run end to end in memory: synthesise, process, score.
+/// A synthetic scenario run end to end in memory: what to render, how to process and score it,
+/// and the wire its images cross.
+#[derive(Debug, Clone)]
+pub struct SyntheticRun {
+    pub spec: ScenarioSpec,
+    pub config: PipelineConfig,
+    pub frames: usize,
+    pub particles: usize,
+    pub seed: u64,
+    pub eval: EvalOptions,
+    pub wire: Wire,
+}
+
+impl SyntheticRun {
+    /// The scenario's default frames and particles, seed 1, scored over the config's velocity
+    /// window, images in memory as rendered.
+    pub fn new(spec: ScenarioSpec, config: PipelineConfig) -> Self {
+        let eval = EvalOptions {
+            window_frames: config.velocity.half_window_frames as u64,
+            ..Default::default()
+        };
+        Self {
+            frames: spec.default_frames,
+            particles: spec.default_particles,
+            spec,
+            config,
+            seed: 1,
+            eval,
+            wire: Wire::Frames(Encoding::Raw8),
+        }
+    }
+
+    /// Synthesises, sends the images over the wire (encoded as a headset or hl2ss would,
+    /// decoded as the server or the bridge does), processes and scores; `progress` is told each
+    /// frame done.
+    pub fn run(&self, mut progress: impl FnMut(usize)) -> Result<InMemoryRun, OfflineError> {
+        let spec = &self.spec;
+        let mut pipeline = Pipeline::new(spec.rig.clone(), self.config.clone())?;
+        let pixels = spec.rig.width as usize * spec.rig.height as usize;
+        let mut wire = WireLink::new(self.wire, spec)?;
+        let mut synth = Synthesizer::new(spec.clone(), self.particles, self.seed);
+        let mut scene = SynthSummary::default();
+        let (mut truth, mut tracks, mut causal_tracks) = (Vec::new(), Vec::new(), Vec::new());
+        let mut totals = RunTotals::for_pipeline(&pipeline);
+        for n in 0..self.frames {
+            let mut f = synth.next_frame();
+            f.left = wire.carry(0, std::mem::take(&mut f.left))?;
+            f.right = wire.carry(1, std::mem::take(&mut f.right))?;
+            let entry = FrameEntry {
+                index: f.index,
+                t_s: f.t_s,
+                world_from_rig: f.world_from_rig,
+            };
+            let output = push_pixels(&mut pipeline, &mut totals, &entry, &f.left, &f.right)?;
+            tracks.extend(output.vectors.iter().map(TrackRow::from));
+            causal_tracks.extend(output.causal_vectors.iter().map(TrackRow::from));
+            scene.add(&f, pixels);
+            truth.extend(f.truth);
+            progress(n + 1);
+        }
+        let report = evaluate(&truth, &tracks, &self.eval)?;
+        Ok(InMemoryRun {
+            truth,
+            tracks,
+            causal_tracks,
+            totals,
+            report,
+            scene,
+            wire: wire.summary,
+        })
+    }
+}
+
+/// A scenario run end to end in memory: what it rendered, measured and scored.
 #[derive(Debug, Clone)]
 pub struct InMemoryRun {
     pub truth: Vec<TruthRow>,
@@ -586,80 +371,67 @@ impl WireSummary {
     }
 }
 
-pub fn run_in_memory(
-    spec: ScenarioSpec,
-    config: PipelineConfig,
-    frames: usize,
-    particles: usize,
-    seed: u64,
-    eval: &EvalOptions,
-    progress: impl FnMut(usize),
-) -> Result<InMemoryRun, OfflineError> {
-    run_in_memory_over(
-        Wire::Frames(Encoding::Raw8),
-        spec,
-        config,
-        frames,
-        particles,
-        seed,
-        eval,
-        progress,
-    )
+/// One encoder and decoder per camera: a video codec carries state from frame to frame.
+type H264Streams = [(crate::video::H264Encoder, crate::video::H264Decoder); 2];
+
+/// A wire the images of a synthetic run cross, with what it has cost so far.
+struct WireLink {
+    summary: WireSummary,
+    width: u32,
+    height: u32,
+    streams: Option<H264Streams>,
 }
 
-/// A synthetic run whose images travel over `wire` (encoded as a headset or hl2ss would,
-/// decoded as the server or the bridge does) before the pipeline: what that costs in accuracy
-/// and bandwidth.
-#[allow(clippy::too_many_arguments)]
-pub fn run_in_memory_over(
-    wire: Wire,
-    spec: ScenarioSpec,
-    config: PipelineConfig,
-    frames: usize,
-    particles: usize,
-    seed: u64,
-    eval: &EvalOptions,
-    mut progress: impl FnMut(usize),
-) -> Result<InMemoryRun, OfflineError> {
-    let mut pipeline = Pipeline::new(spec.rig.clone(), config)?;
-    let pixels = spec.rig.width as usize * spec.rig.height as usize;
-    let (width, height) = (spec.rig.width, spec.rig.height);
-    let mut summary = WireSummary {
-        wire,
-        images: 0,
-        bytes: 0,
-        encode_s: 0.0,
-        decode_s: 0.0,
-    };
-    let failed = |message: String| OfflineError::Wire { wire, message };
-    // One stream per camera: a video codec carries state from frame to frame.
-    let mut streams = match wire {
-        Wire::H264 { bitrate_bps } => {
-            let fps = (1.0 / spec.frame_interval_s) as f32;
-            let stream = || -> Result<_, OfflineError> {
-                Ok((
-                    crate::video::H264Encoder::new(
-                        width,
-                        height,
-                        bitrate_bps,
-                        fps,
-                        fps.round() as u32,
-                    )
-                    .map_err(|e| failed(e.to_string()))?,
-                    crate::video::H264Decoder::new(width, height)
+impl WireLink {
+    fn new(wire: Wire, spec: &ScenarioSpec) -> Result<Self, OfflineError> {
+        let (width, height) = (spec.rig.width, spec.rig.height);
+        let failed = |message: String| OfflineError::Wire { wire, message };
+        let streams = match wire {
+            Wire::H264 { bitrate_bps } => {
+                let fps = (1.0 / spec.frame_interval_s) as f32;
+                let stream = || -> Result<_, OfflineError> {
+                    Ok((
+                        crate::video::H264Encoder::new(
+                            width,
+                            height,
+                            bitrate_bps,
+                            fps,
+                            fps.round() as u32,
+                        )
                         .map_err(|e| failed(e.to_string()))?,
-                ))
-            };
-            Some([stream()?, stream()?])
-        }
-        Wire::Frames(_) => None,
-    };
-    let mut through_wire = |camera: usize, image: Vec<u8>| -> Result<Vec<u8>, OfflineError> {
-        summary.images += 1;
+                        crate::video::H264Decoder::new(width, height)
+                            .map_err(|e| failed(e.to_string()))?,
+                    ))
+                };
+                Some([stream()?, stream()?])
+            }
+            Wire::Frames(_) => None,
+        };
+        let summary = WireSummary {
+            wire,
+            images: 0,
+            bytes: 0,
+            encode_s: 0.0,
+            decode_s: 0.0,
+        };
+        Ok(Self {
+            summary,
+            width,
+            height,
+            streams,
+        })
+    }
+
+    /// Camera `camera`'s image after the wire, timing the coding.
+    fn carry(&mut self, camera: usize, image: Vec<u8>) -> Result<Vec<u8>, OfflineError> {
+        let wire = self.summary.wire;
+        let failed = |message: String| OfflineError::Wire { wire, message };
+        let (width, height) = (self.width, self.height);
+        self.summary.images += 1;
         let started = Instant::now();
-        let (sent, encoded, received) = match (wire, &mut streams) {
+        let (sent, encoded, received) = match (wire, &mut self.streams) {
             (Wire::Frames(Encoding::Raw8), _) => {
-                summary.bytes += image.len() as u64;
+                self.summary.bytes += image.len() as u64;
                 return Ok(image);
             }
             (Wire::Frames(encoding), _) => {
@@ -685,132 +457,9 @@ pub fn run_in_memory_over(
                 (sent, encoded, received)
             }
         };
-        summary.encode_s += (encoded - started).as_secs_f64();
-        summary.decode_s += encoded.elapsed().as_secs_f64();
-        summary.bytes += sent.len() as u64;
+        self.summary.encode_s += (encoded - started).as_secs_f64();
+        self.summary.decode_s += encoded.elapsed().as_secs_f64();
+        self.summary.bytes += sent.len() as u64;
         Ok(received)
-    };
-    let mut synth = Synthesizer::new(spec, particles, seed);
-    let mut scene = SynthSummary::default();
-    let mut truth = Vec::new();
-    let mut tracks = Vec::new();
-    let mut causal_tracks = Vec::new();
-    let mut totals = RunTotals::for_pipeline(&pipeline);
-    for n in 0..frames {
-        let mut f = synth.next_frame();
-        f.left = through_wire(0, std::mem::take(&mut f.left))?;
-        f.right = through_wire(1, std::mem::take(&mut f.right))?;
-        let output = push_pixels(
-            &mut pipeline,
-            &mut totals,
-            f.index,
-            f.t_s,
-            f.world_from_rig,
-            &f.left,
-            &f.right,
-        )?;
-        tracks.extend(output.vectors.iter().map(TrackRow::from));
-        causal_tracks.extend(output.causal_vectors.iter().map(TrackRow::from));
-        scene.add(&f, pixels);
-        truth.extend(f.truth);
-        progress(n + 1);
-    }
-    let report = evaluate(&truth, &tracks, eval)?;
-    Ok(InMemoryRun {
-        truth,
-        tracks,
-        causal_tracks,
-        totals,
-        report,
-        scene,
-        wire: summary,
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn healthy() -> RunTotals {
-        RunTotals {
-            frames: 100,
-            counts: FrameStats {
-                detections_left: 3000,
-                detections_right: 3000,
-                matches: 2900,
-                vectors: 2200,
-                linked_left: 2900,
-                linked_right: 2900,
-                stereo_candidates: 3500,
-                left_with_candidates: 2950,
-                ..Default::default()
-            },
-            ..Default::default()
-        }
-    }
-
-    /// `totals` with its counts changed by `change`.
-    fn with(totals: RunTotals, change: impl FnOnce(&mut FrameStats)) -> RunTotals {
-        let mut t = totals;
-        change(&mut t.counts);
-        t
-    }
-
-    #[test]
-    fn a_healthy_run_has_no_warnings() {
-        let health = healthy().health(&PipelineConfig::default());
-        assert!(health.warnings.is_empty(), "{:?}", health.warnings);
-        assert!(
-            health.summary.contains("30.0 detections/image")
-                && health.summary.contains("97 % linked"),
-            "{}",
-            health.summary
-        );
-    }
-
-    #[test]
-    fn every_run_without_vectors_says_why() {
-        let config = PipelineConfig::default();
-        let why = |totals: RunTotals| {
-            let warnings = totals.health(&config).warnings;
-            assert_eq!(warnings.len(), 1, "{warnings:?}");
-            warnings[0].clone()
-        };
-        let none = |t: RunTotals| with(t, |c| c.vectors = 0);
-        assert!(why(none(RunTotals::default())).contains("no frames"));
-        let dark = RunTotals {
-            frames: 50,
-            ..Default::default()
-        };
-        assert!(why(dark).contains("no particle was detected"));
-        let unmatched = with(none(healthy()), |c| c.matches = 0);
-        assert!(why(unmatched).contains("none matched between the cameras"));
-        let short = RunTotals {
-            frames: 4,
-            ..none(healthy())
-        };
-        assert!(why(short).contains("has 4 frames"));
-        let broken = with(none(healthy()), |c| {
-            c.linked_left = 300;
-            c.linked_right = 300;
-        });
-        assert!(why(broken).contains("linking box"));
-    }
-
-    #[test]
-    fn tracks_that_break_and_ambiguous_matches_are_warned_of() {
-        let config = PipelineConfig::default();
-        let fast = with(healthy(), |c| c.vectors = 20);
-        let warnings = fast.health(&config).warnings;
-        assert!(
-            warnings.iter().any(|w| w.contains("tracks break")),
-            "{warnings:?}"
-        );
-        let crowded = with(healthy(), |c| c.stereo_candidates = 9000);
-        let warnings = crowded.health(&config).warnings;
-        assert!(
-            warnings.iter().any(|w| w.contains("ambiguous")),
-            "{warnings:?}"
-        );
     }
 }

@@ -1,7 +1,7 @@
 //! The whole pipeline on synthetic scenes with known truth, against stated tolerances.
 //! Each bound is the acceptance bound; the figures actually reached are in README.md.
 
-use mrptv::offline::run_in_memory;
+use mrptv::offline::SyntheticRun;
 use mrptv_engine::eval::{evaluate, EvalOptions, Report};
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv_engine::PipelineConfig;
@@ -25,17 +25,11 @@ fn run_with(
     radius_m: f64,
     seed: u64,
 ) -> Report {
-    let spec = ScenarioSpec::new(scenario);
-    let config = config.unwrap_or_default();
-    let eval = EvalOptions {
-        window_frames: config.velocity.half_window_frames as u64,
-        radius_m,
-        ..Default::default()
-    };
-    let frames = spec.default_frames;
-    run_in_memory(spec, config, frames, particles, seed, &eval, |_| {})
-        .expect("scenario runs")
-        .report
+    let mut run = SyntheticRun::new(ScenarioSpec::new(scenario), config.unwrap_or_default());
+    run.particles = particles;
+    run.seed = seed;
+    run.eval.radius_m = radius_m;
+    run.run(|_| {}).expect("scenario runs").report
 }
 
 /// Relative RMS velocity error bounds (in-plane u and v, out-of-plane w), ghost rate and
@@ -396,19 +390,9 @@ fn causal_estimates_measure_the_flow() {
         (Scenario::Uniform, 0.02, 0.05),
         (Scenario::Flume, 0.02, 0.06),
     ] {
-        let spec = ScenarioSpec::new(scenario);
-        let config = PipelineConfig::default();
-        let (frames, particles) = (spec.default_frames, spec.default_particles);
-        let run = run_in_memory(
-            spec,
-            config,
-            frames,
-            particles,
-            1,
-            &EvalOptions::default(),
-            |_| {},
-        )
-        .expect("scenario runs");
+        let mut run = SyntheticRun::new(ScenarioSpec::new(scenario), PipelineConfig::default());
+        run.eval = EvalOptions::default();
+        let run = run.run(|_| {}).expect("scenario runs");
         let causal = evaluate(&run.truth, &run.causal_tracks, &EvalOptions::default())
             .expect("causal vectors score");
         let e = &causal.relative_rms_velocity_error;
@@ -437,7 +421,7 @@ fn causal_estimates_measure_the_flow() {
 /// velocity errors within 10 % of raw images' and the same yield (within 3 %).
 #[test]
 fn sparse_images_fit_a_headsets_link_and_keep_the_accuracy() {
-    use mrptv::offline::{run_in_memory_over, Wire};
+    use mrptv::offline::Wire;
     use mrptv::protocol::Encoding;
     for scenario in [Scenario::Flume, Scenario::MovingHead, Scenario::HololensRaw] {
         let spec = ScenarioSpec::new(scenario);
@@ -448,17 +432,10 @@ fn sparse_images_fit_a_headsets_link_and_keep_the_accuracy() {
             ..Default::default()
         };
         let run = |wire| {
-            run_in_memory_over(
-                wire,
-                spec.clone(),
-                config.clone(),
-                spec.default_frames,
-                spec.default_particles,
-                1,
-                &eval,
-                |_| {},
-            )
-            .expect("scenario runs")
+            let mut run = SyntheticRun::new(spec.clone(), config.clone());
+            run.eval = eval.clone();
+            run.wire = wire;
+            run.run(|_| {}).expect("scenario runs")
         };
         let (raw, sparse) = (
             run(Wire::Frames(Encoding::Raw8)),

@@ -1,30 +1,17 @@
 //! Per-vector uncertainties against synthetic truth, and the mean-flow field binned from the
 //! vectors, on the default config.
 
-use mrptv::offline::{run_in_memory, InMemoryRun};
-use mrptv_engine::eval::{Coverage, EvalOptions, Xyz};
+use mrptv::offline::{InMemoryRun, SyntheticRun};
+use mrptv_engine::eval::{Coverage, Xyz};
 use mrptv_engine::field::{default_cell_m, FieldGrid, FieldSample};
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv_engine::PipelineConfig;
 
 fn run(scenario: Scenario, seed: u64) -> (ScenarioSpec, InMemoryRun) {
     let spec = ScenarioSpec::new(scenario);
-    let config = PipelineConfig::default();
-    let eval = EvalOptions {
-        window_frames: config.velocity.half_window_frames as u64,
-        ..Default::default()
-    };
-    let run = run_in_memory(
-        spec.clone(),
-        config,
-        spec.default_frames,
-        spec.default_particles,
-        seed,
-        &eval,
-        |_| {},
-    )
-    .expect("scenario runs");
-    (spec, run)
+    let mut run = SyntheticRun::new(spec.clone(), PipelineConfig::default());
+    run.seed = seed;
+    (spec, run.run(|_| {}).expect("scenario runs"))
 }
 
 fn coverage(name: &str, run: &InMemoryRun) -> Coverage {

@@ -5,7 +5,7 @@
 //! covers (its first to last frame) count, so the `M` frames at either end that a centred window
 //! cannot reach do not lower the yield.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 use nalgebra::{Point3, Vector3};
@@ -212,6 +212,8 @@ fn rms(sum_sq: Vector3<f64>, n: usize) -> Xyz {
     Xyz::from(sum_sq.map(|v| (v / n as f64).sqrt()))
 }
 
+/// Scores `tracks` against `truth`: association, ghosts and duplicates, yields, errors, purity,
+/// errors by depth and how well the stated sigmas cover the errors.
 pub fn evaluate(
     truth: &[TruthRow],
     tracks: &[TrackRow],
@@ -235,32 +237,117 @@ pub fn evaluate(
     if truth_rows == 0 {
         return Err(EvalError::NoTruth { first, last });
     }
+    let measurable = Measurable::new(truth, options.window_frames);
+    let measurable_rows = truth_by_frame
+        .values()
+        .flatten()
+        .filter(|t| measurable.contains(t))
+        .count();
+    let matched = associate(tracks, &truth_by_frame, options.radius_m);
+    let n = matched.associations.len();
+    let measurable_associated = matched
+        .associations
+        .iter()
+        .filter(|a| measurable.contains(&a.truth))
+        .count();
+    let errors = Errors::of(&matched.associations, options.outlier_fraction);
+    let present: BTreeSet<u64> = truth_by_frame.values().flatten().map(|t| t.pid).collect();
+    let covered: BTreeSet<u64> = matched.associations.iter().map(|a| a.truth.pid).collect();
+    let track_rows = tracks.len();
+    Ok(Report {
+        radius_m: options.radius_m,
+        first_frame: first,
+        last_frame: last,
+        track_rows,
+        tracks: tracks
+            .iter()
+            .map(|t| t.track_id)
+            .collect::<BTreeSet<_>>()
+            .len(),
+        truth_rows,
+        associated_rows: n,
+        association_rate: fraction(n, track_rows),
+        ghost_rate: fraction(matched.ghosts, track_rows),
+        duplicate_rate: fraction(matched.duplicates, track_rows),
+        yield_fraction: fraction(n, truth_rows),
+        window_frames: options.window_frames,
+        measurable_rows,
+        measurable_yield: fraction(measurable_associated, measurable_rows),
+        particle_coverage: fraction(covered.len(), present.len()),
+        mean_speed_m_per_s: errors.mean_speed,
+        rms_position_error_m: errors.rms_position,
+        rms_velocity_error_m_per_s: errors.rms_velocity,
+        relative_rms_velocity_error: errors.relative(),
+        outlier_fraction_threshold: options.outlier_fraction,
+        outlier_rate: fraction(errors.outliers, n),
+        track_purity: fraction(dominant_rows(&matched.associations), n),
+        by_depth: by_depth(&matched.associations, options.depth_bins),
+        uncertainty: coverage(&matched.associations),
+    })
+}
+
+fn fraction(a: usize, b: usize) -> f64 {
+    if b == 0 {
+        0.0
+    } else {
+        a as f64 / b as f64
+    }
+}
+
+/// Which truth particle-frames a centred velocity can describe: their particle lives through the
+/// whole +-M window around them.
+struct Measurable {
+    lifetimes: BTreeMap<u64, (u64, u64)>,
+    window_frames: u64,
+}
+
+impl Measurable {
+    fn new(truth: &[TruthRow], window_frames: u64) -> Self {
+        let mut lifetimes: BTreeMap<u64, (u64, u64)> = BTreeMap::new();
+        for t in truth {
+            let life = lifetimes.entry(t.pid).or_insert((t.frame, t.frame));
+            life.0 = life.0.min(t.frame);
+            life.1 = life.1.max(t.frame);
+        }
+        Self {
+            lifetimes,
+            window_frames,
+        }
+    }
+
+    fn contains(&self, t: &TruthRow) -> bool {
+        let m = self.window_frames;
+        self.lifetimes.get(&t.pid).is_some_and(|&(first, last)| {
+            t.frame >= first.saturating_add(m) && t.frame.saturating_add(m) <= last
+        })
+    }
+}
+
+/// What the association of track rows with truth particles found.
+struct Matched {
+    associations: Vec<Association>,
+    /// Rows with no truth particle within the radius.
+    ghosts: usize,
+    /// Rows whose only nearby truth particles were claimed by closer rows.
+    duplicates: usize,
+}
+
+/// In every frame, each track row paired with at most one truth particle and vice versa,
+/// nearest pairs first, within `radius_m`.
+fn associate(
+    tracks: &[TrackRow],
+    truth_by_frame: &BTreeMap<u64, Vec<TruthRow>>,
+    radius_m: f64,
+) -> Matched {
     let mut rows_by_frame: BTreeMap<u64, Vec<TrackRow>> = BTreeMap::new();
     for r in tracks {
         rows_by_frame.entry(r.frame).or_default().push(*r);
     }
-
-    let mut lifetimes: BTreeMap<u64, (u64, u64)> = BTreeMap::new();
-    for t in truth {
-        let life = lifetimes.entry(t.pid).or_insert((t.frame, t.frame));
-        life.0 = life.0.min(t.frame);
-        life.1 = life.1.max(t.frame);
-    }
-    let m = options.window_frames;
-    let measurable = |t: &TruthRow| {
-        lifetimes.get(&t.pid).is_some_and(|&(first, last)| {
-            t.frame >= first.saturating_add(m) && t.frame.saturating_add(m) <= last
-        })
+    let mut matched = Matched {
+        associations: Vec::new(),
+        ghosts: 0,
+        duplicates: 0,
     };
-    let measurable_rows = truth_by_frame
-        .values()
-        .flatten()
-        .filter(|t| measurable(t))
-        .count();
-
-    let mut associations = Vec::new();
-    let mut ghosts = 0;
-    let mut duplicates = 0;
     let empty = Vec::new();
     for (frame, rows) in &rows_by_frame {
         let candidates = truth_by_frame.get(frame).unwrap_or(&empty);
@@ -269,12 +356,12 @@ pub fn evaluate(
             let mut near = false;
             for (ti, t) in candidates.iter().enumerate() {
                 let d = (r.position - t.position).norm();
-                if d <= options.radius_m {
+                if d <= radius_m {
                     pairs.push((d, ri, ti));
                     near = true;
                 }
             }
-            ghosts += usize::from(!near);
+            matched.ghosts += usize::from(!near);
         }
         pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
         let mut row_done = vec![false; rows.len()];
@@ -283,139 +370,133 @@ pub fn evaluate(
             if !row_done[ri] && !truth_done[ti] {
                 row_done[ri] = true;
                 truth_done[ti] = true;
-                associations.push(Association {
+                matched.associations.push(Association {
                     row: rows[ri],
                     truth: candidates[ti],
                 });
             }
         }
-        duplicates += rows.len() - row_done.iter().filter(|d| **d).count();
+        matched.duplicates += rows.len() - row_done.iter().filter(|d| **d).count();
     }
-    duplicates -= ghosts;
+    matched.duplicates -= matched.ghosts;
+    matched
+}
 
-    let n = associations.len();
-    let measurable_associated = associations.iter().filter(|a| measurable(&a.truth)).count();
-    let track_rows = tracks.len();
-    let mean_speed = if n == 0 {
-        0.0
-    } else {
-        associations
-            .iter()
-            .map(|a| a.truth.velocity.norm())
-            .sum::<f64>()
-            / n as f64
-    };
-    let mut position_sq = Vector3::zeros();
-    let mut velocity_sq = Vector3::zeros();
-    let mut outliers = 0;
-    for a in &associations {
-        position_sq += (a.row.position - a.truth.position).map(|v| v * v);
-        let dv = a.row.velocity - a.truth.velocity;
-        velocity_sq += dv.map(|v| v * v);
-        outliers += usize::from(dv.norm() > options.outlier_fraction * mean_speed);
-    }
-    let rms_velocity = rms(velocity_sq, n);
-    let relative = |v: f64| {
-        if mean_speed > 0.0 {
-            v / mean_speed
+/// The associated rows' errors against the truth.
+struct Errors {
+    mean_speed: f64,
+    rms_position: Xyz,
+    rms_velocity: Xyz,
+    /// Rows whose velocity error exceeds the outlier fraction of the mean speed.
+    outliers: usize,
+}
+
+impl Errors {
+    fn of(associations: &[Association], outlier_fraction: f64) -> Self {
+        let n = associations.len();
+        let mean_speed = if n == 0 {
+            0.0
         } else {
-            f64::NAN
+            associations
+                .iter()
+                .map(|a| a.truth.velocity.norm())
+                .sum::<f64>()
+                / n as f64
+        };
+        let mut position_sq = Vector3::zeros();
+        let mut velocity_sq = Vector3::zeros();
+        let mut outliers = 0;
+        for a in associations {
+            position_sq += (a.row.position - a.truth.position).map(|v| v * v);
+            let dv = a.row.velocity - a.truth.velocity;
+            velocity_sq += dv.map(|v| v * v);
+            outliers += usize::from(dv.norm() > outlier_fraction * mean_speed);
         }
-    };
+        Self {
+            mean_speed,
+            rms_position: rms(position_sq, n),
+            rms_velocity: rms(velocity_sq, n),
+            outliers,
+        }
+    }
 
+    /// The RMS velocity error relative to the mean speed, per component.
+    fn relative(&self) -> Xyz {
+        let relative = |v: f64| {
+            if self.mean_speed > 0.0 {
+                v / self.mean_speed
+            } else {
+                f64::NAN
+            }
+        };
+        Xyz {
+            x: relative(self.rms_velocity.x),
+            y: relative(self.rms_velocity.y),
+            z: relative(self.rms_velocity.z),
+        }
+    }
+}
+
+/// Rows that agree with their track's most frequent truth particle.
+fn dominant_rows(associations: &[Association]) -> usize {
     let mut pid_counts: BTreeMap<u64, BTreeMap<u64, usize>> = BTreeMap::new();
-    for a in &associations {
+    for a in associations {
         *pid_counts
             .entry(a.row.track_id)
             .or_default()
             .entry(a.truth.pid)
             .or_default() += 1;
     }
-    let dominant: usize = pid_counts
+    pid_counts
         .values()
         .map(|c| c.values().copied().max().unwrap_or(0))
-        .sum();
-    let present: std::collections::BTreeSet<u64> =
-        truth_by_frame.values().flatten().map(|t| t.pid).collect();
-    let covered: std::collections::BTreeSet<u64> =
-        associations.iter().map(|a| a.truth.pid).collect();
-    let tracks_count = tracks
-        .iter()
-        .map(|t| t.track_id)
-        .collect::<std::collections::BTreeSet<_>>()
-        .len();
+        .sum()
+}
 
-    let mut by_depth = Vec::new();
-    if n > 0 && options.depth_bins > 0 {
-        let z_min = associations
-            .iter()
-            .map(|a| a.truth.position.z)
-            .fold(f64::MAX, f64::min);
-        let z_max = associations
-            .iter()
-            .map(|a| a.truth.position.z)
-            .fold(f64::MIN, f64::max);
-        let width = ((z_max - z_min) / options.depth_bins as f64).max(1e-12);
-        let mut sums = vec![(Vector3::zeros(), 0usize); options.depth_bins];
-        for a in &associations {
-            let bin = (((a.truth.position.z - z_min) / width) as usize).min(options.depth_bins - 1);
-            sums[bin].0 += (a.row.velocity - a.truth.velocity).map(|v| v * v);
-            sums[bin].1 += 1;
-        }
-        for (i, (sq, count)) in sums.into_iter().enumerate() {
-            by_depth.push(DepthBin {
-                z_min: z_min + i as f64 * width,
-                z_max: z_min + (i + 1) as f64 * width,
-                rows: count,
-                rms_velocity_error: rms(sq, count),
-            });
-        }
+/// The RMS velocity error in `bins` equal bins of the truth's world z.
+fn by_depth(associations: &[Association], bins: usize) -> Vec<DepthBin> {
+    if associations.is_empty() || bins == 0 {
+        return Vec::new();
     }
-
-    let fraction = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
-    Ok(Report {
-        radius_m: options.radius_m,
-        first_frame: first,
-        last_frame: last,
-        track_rows,
-        tracks: tracks_count,
-        truth_rows,
-        associated_rows: n,
-        association_rate: fraction(n, track_rows),
-        ghost_rate: fraction(ghosts, track_rows),
-        duplicate_rate: fraction(duplicates, track_rows),
-        yield_fraction: fraction(n, truth_rows),
-        window_frames: m,
-        measurable_rows,
-        measurable_yield: fraction(measurable_associated, measurable_rows),
-        particle_coverage: fraction(covered.len(), present.len()),
-        mean_speed_m_per_s: mean_speed,
-        rms_position_error_m: rms(position_sq, n),
-        rms_velocity_error_m_per_s: rms_velocity,
-        relative_rms_velocity_error: Xyz {
-            x: relative(rms_velocity.x),
-            y: relative(rms_velocity.y),
-            z: relative(rms_velocity.z),
-        },
-        outlier_fraction_threshold: options.outlier_fraction,
-        outlier_rate: fraction(outliers, n),
-        track_purity: fraction(dominant, n),
-        by_depth,
-        uncertainty: coverage(&associations),
-    })
+    let z = || associations.iter().map(|a| a.truth.position.z);
+    let (z_min, z_max) = (z().fold(f64::MAX, f64::min), z().fold(f64::MIN, f64::max));
+    let width = ((z_max - z_min) / bins as f64).max(1e-12);
+    let mut sums = vec![(Vector3::zeros(), 0usize); bins];
+    for a in associations {
+        let bin = (((a.truth.position.z - z_min) / width) as usize).min(bins - 1);
+        sums[bin].0 += (a.row.velocity - a.truth.velocity).map(|v| v * v);
+        sums[bin].1 += 1;
+    }
+    sums.into_iter()
+        .enumerate()
+        .map(|(i, (sq, count))| DepthBin {
+            z_min: z_min + i as f64 * width,
+            z_max: z_min + (i + 1) as f64 * width,
+            rows: count,
+            rms_velocity_error: rms(sq, count),
+        })
+        .collect()
 }
 
 impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let pct = |v: f64| format!("{:.2} %", 100.0 * v);
-        let xyz = |v: &Xyz, scale: f64, unit: &str| {
-            format!(
-                "x {:.4} {unit}  y {:.4} {unit}  z {:.4} {unit}",
-                v.x * scale,
-                v.y * scale,
-                v.z * scale
-            )
-        };
+        self.write_rates(f)?;
+        self.write_errors(f)?;
+        if let Some(c) = &self.uncertainty {
+            c.write(f)?;
+        }
+        Ok(())
+    }
+}
+
+/// A fraction as a percentage with two decimals.
+fn pct(v: f64) -> String {
+    format!("{:.2} %", 100.0 * v)
+}
+
+impl Report {
+    /// What was found of what: association, ghosts, duplicates, yields, coverage, purity.
+    fn write_rates(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(
             f,
             "frames {}..={}, {} vectors on {} tracks, {} truth particle-frames",
@@ -434,13 +515,31 @@ impl fmt::Display for Report {
             "yield              {}  (truth particle-frames with a vector)",
             pct(self.yield_fraction)
         )?;
-        writeln!(f, "measurable yield   {}  (of the {} particle-frames whose particle lives +-{} frames around them)", pct(self.measurable_yield), self.measurable_rows, self.window_frames)?;
+        writeln!(
+            f,
+            "measurable yield   {}  (of the {} particle-frames whose particle lives +-{} frames around them)",
+            pct(self.measurable_yield),
+            self.measurable_rows,
+            self.window_frames
+        )?;
         writeln!(
             f,
             "particle coverage  {}  (particles with at least one vector)",
             pct(self.particle_coverage)
         )?;
-        writeln!(f, "track purity       {}", pct(self.track_purity))?;
+        writeln!(f, "track purity       {}", pct(self.track_purity))
+    }
+
+    /// How far off the vectors are: mean speed, RMS errors, outliers, errors by depth.
+    fn write_errors(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let xyz = |v: &Xyz, scale: f64, unit: &str| {
+            format!(
+                "x {:.4} {unit}  y {:.4} {unit}  z {:.4} {unit}",
+                v.x * scale,
+                v.y * scale,
+                v.z * scale
+            )
+        };
         writeln!(f, "mean speed         {:.4} m/s", self.mean_speed_m_per_s)?;
         writeln!(
             f,
@@ -475,51 +574,55 @@ impl fmt::Display for Report {
                 b.z_min, b.z_max, b.rows, e.x, e.y, e.z
             )?;
         }
-        if let Some(c) = &self.uncertainty {
-            let s = &c.median_velocity_sigma_m_per_s;
+        Ok(())
+    }
+}
+
+impl Coverage {
+    fn write(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "stated uncertainty ({} vectors; Gaussian: 68.3 % within 1 sigma, 95.4 % within 2)",
+            self.rows
+        )?;
+        let velocity = ["u", "v", "w"];
+        let position = ["x", "y", "z"];
+        for (what, [a, b, d], v) in [
+            (
+                "velocity within 1 sigma",
+                velocity,
+                &self.velocity_within_1_sigma,
+            ),
+            (
+                "velocity within 2 sigma",
+                velocity,
+                &self.velocity_within_2_sigma,
+            ),
+            (
+                "position within 1 sigma",
+                position,
+                &self.position_within_1_sigma,
+            ),
+            (
+                "position within 2 sigma",
+                position,
+                &self.position_within_2_sigma,
+            ),
+        ] {
             writeln!(
                 f,
-                "stated uncertainty ({} vectors; Gaussian: 68.3 % within 1 sigma, 95.4 % within 2)",
-                c.rows
-            )?;
-            for (what, axes, v) in [
-                (
-                    "velocity within 1 sigma",
-                    ["u", "v", "w"],
-                    &c.velocity_within_1_sigma,
-                ),
-                (
-                    "velocity within 2 sigma",
-                    ["u", "v", "w"],
-                    &c.velocity_within_2_sigma,
-                ),
-                (
-                    "position within 1 sigma",
-                    ["x", "y", "z"],
-                    &c.position_within_1_sigma,
-                ),
-                (
-                    "position within 2 sigma",
-                    ["x", "y", "z"],
-                    &c.position_within_2_sigma,
-                ),
-            ] {
-                let [a, b, d] = axes;
-                writeln!(
-                    f,
-                    "  {what}  {a} {}  {b} {}  {d} {}",
-                    pct(v.x),
-                    pct(v.y),
-                    pct(v.z)
-                )?;
-            }
-            writeln!(
-                f,
-                "  median velocity sigma    u {:.5}  v {:.5}  w {:.5} m/s",
-                s.x, s.y, s.z
+                "  {what}  {a} {}  {b} {}  {d} {}",
+                pct(v.x),
+                pct(v.y),
+                pct(v.z)
             )?;
         }
-        Ok(())
+        let s = &self.median_velocity_sigma_m_per_s;
+        writeln!(
+            f,
+            "  median velocity sigma    u {:.5}  v {:.5}  w {:.5} m/s",
+            s.x, s.y, s.z
+        )
     }
 }
 

@@ -9,6 +9,7 @@ pub mod eval;
 pub mod field;
 mod frame;
 pub mod geometry;
+pub mod health;
 pub mod link;
 pub mod pipeline;
 mod spatial;

@@ -4,7 +4,6 @@ use anyhow::{bail, Result};
 
 use mrptv::offline::{self, Wire};
 use mrptv::protocol::Encoding;
-use mrptv_engine::eval::EvalOptions;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv_engine::PipelineConfig;
 
@@ -74,21 +73,10 @@ pub fn run(args: Args) -> Result<()> {
         if method { "published-method" } else { "mrptv" }
     );
     let bar = progress_bar(frames, "demo");
-    let eval = EvalOptions {
-        window_frames: config.velocity.half_window_frames as u64,
-        ..Default::default()
-    };
     let pairs_per_s = 1.0 / spec.frame_interval_s;
-    let run = offline::run_in_memory_over(
-        wire,
-        spec,
-        config.clone(),
-        frames,
-        particles,
-        seed,
-        &eval,
-        |n| bar.set_position(n as u64),
-    )?;
+    let mut run = offline::SyntheticRun::new(spec, config.clone());
+    (run.frames, run.particles, run.seed, run.wire) = (frames, particles, seed, wire);
+    let run = run.run(|n| bar.set_position(n as u64))?;
     bar.finish_and_clear();
     println!("scene: {}", run.scene.crowding());
     super::print_health(&run.totals.health(&config));

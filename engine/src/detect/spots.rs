@@ -22,8 +22,7 @@ const PER_SPOT: usize = 5;
 const MAX_FLATNESS: f64 = 4.0;
 const MAX_ITERATIONS: usize = 15;
 /// A step that moves no centre by more than this ends the fit: below the 0.01 px that
-/// centroids are good to. Measured against 1e-3 px: every scenario's figures within 0.1 point,
-/// the whole pipeline 8 % faster on the dense seeded scene (one thread).
+/// centroids are good to, so smaller steps only cost time.
 const CONVERGED_STEP_PX: f64 = 5e-3;
 
 /// Fits `seeds.len()` spots plus a constant floor to `samples` (x, y, value) starting from the
@@ -75,18 +74,17 @@ pub struct SpotFit {
 }
 
 /// A fit whose residual exceeds this fraction of its weakest spot's amplitude has missed
-/// something (a third particle, a spot that is not round): on the synthetic scenes, fits above
-/// 3-5 % were the ones off by 0.5-1 px.
+/// something (a third particle, a spot that is not round): such fits place centres half a pixel
+/// or more from the truth.
 const MAX_RELATIVE_RESIDUAL: f64 = 0.05;
 
 /// Spots closer than this multiple of the sum of their half-widths (at half maximum) share so
-/// much light that their centres trade off against each other: measured on the synthetic
-/// scenes, admitting them doubled the out-of-plane error of the vectors they gave.
+/// much light that their centres trade off against each other: their vectors' out-of-plane
+/// errors are several times the others'.
 const MIN_SEPARATION_IN_HALF_WIDTHS: f64 = 1.0;
 
-/// See [`SpotFit::is_measured`]: 0.05 px gave more vectors on the dense seeded scene, and on
-/// the uniform scene an out-of-plane error of 1.03 % instead of 0.74 %; 0.03 px leaves the
-/// sparse scenes' figures as they were.
+/// See [`SpotFit::is_measured`]: a looser bound admits centres whose errors cost the
+/// out-of-plane velocity more than their vectors add.
 const MAX_POSITION_SIGMA_PX: f64 = 0.03;
 
 impl SpotFit {
@@ -110,9 +108,8 @@ impl SpotFit {
 
     /// Whether spot `k`'s centre is good for measuring by its own uncertainty: the model
     /// explains the pixels and the residuals leave the centre within `MAX_POSITION_SIGMA_PX`.
-    /// For spots seeded where tracks expect them; measured on the dense seeded scene, those
-    /// below 0.05 px were as close to the truth as trustworthy fits (median 0.02-0.04 px,
-    /// 90 % within 0.11 px), however close the spots.
+    /// For spots seeded where tracks expect them: centres the pixels pin down this well are
+    /// as close to the truth as trustworthy fits give, however close the spots.
     pub fn is_measured(&self, k: usize) -> bool {
         self.explains_the_pixels()
             && self

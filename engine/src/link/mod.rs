@@ -153,6 +153,44 @@ struct ActiveTrack {
 }
 
 impl ActiveTrack {
+    /// A new track at `feature`.
+    fn starting_at(id: u64, feature: &Feature) -> Self {
+        Self {
+            id,
+            last: *feature,
+            motion: None,
+            missed: 0,
+            age: 1,
+            anchor: feature.rect,
+            anchored_frames: 0,
+        }
+    }
+
+    /// This track continued by `feature`: its motion the step since it was last seen, its
+    /// anchor kept while it stays within `FIXTURE_RADIUS_PX` of it.
+    fn continued_by(&self, feature: &Feature) -> Self {
+        let frames = f64::from(self.missed + 1);
+        let motion = (
+            (feature.rect.x - self.last.rect.x) / frames,
+            (feature.rect.y - self.last.rect.y) / frames,
+        );
+        let still = (feature.rect.x - self.anchor.x).hypot(feature.rect.y - self.anchor.y)
+            <= FIXTURE_RADIUS_PX;
+        Self {
+            id: self.id,
+            last: *feature,
+            motion: Some(motion),
+            missed: 0,
+            age: self.age + 1,
+            anchor: if still { self.anchor } else { feature.rect },
+            anchored_frames: if still {
+                self.anchored_frames + self.missed + 1
+            } else {
+                0
+            },
+        }
+    }
+
     /// Where its own motion takes the track in the next frame; `None` before it has one.
     fn moved_on(&self) -> Option<RectPoint> {
         let (dx, dy) = self.motion?;
@@ -202,8 +240,7 @@ impl CameraLinker {
 
     /// Where the tracks seen in the last frame that know their motion expect their particle in
     /// the next frame, in the order of the tracks. A fixture expects nothing new, and a track
-    /// already coasting has lost its particle (measured on the dense seeded scene, leaving
-    /// coasting tracks out gave as many vectors, fewer ghosts, and 7 % less time).
+    /// already coasting has lost its particle: looking for it again finds only its neighbours.
     pub fn expected_positions(&self) -> impl Iterator<Item = RectPoint> + '_ {
         self.tracks
             .iter()
@@ -218,56 +255,8 @@ impl CameraLinker {
         scale: CostScale,
         config: &LinkConfig,
     ) -> Vec<LinkedFeature> {
-        let d_ave = normalising_mean(features.iter().map(|f| f.diameter_px));
-        let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
-        let sorted_x = SortedByX::new(features.iter().map(|f| f.rect));
-        // Indexed only when some track has no motion yet: most frames of a steady flow have none.
-        let new_tracks =
-            config.predict_new_from_neighbours && self.tracks.iter().any(|t| t.motion.is_none());
-        let first_steps = (new_tracks && config.max_displacement_px > 0.0)
-            .then(|| FirstSteps::new(&self.tracks, features, scale));
-        // Tracks with a motion, indexed for new tracks to borrow it: a linear search per new
-        // track cost a dense frame (4,000 particles) more than its detection.
-        let established = (new_tracks && config.neighbours > 0).then(|| {
-            let with_motion = self.tracks.iter().enumerate();
-            PointGrid::new(
-                with_motion.filter_map(|(i, t)| t.motion.map(|_| (t.last.rect, i))),
-                GRID_CELL_PX,
-            )
-        });
-        let predictions: Vec<RectPoint> = (0..self.tracks.len())
-            .map(|t| self.predict(t, first_steps.as_ref(), established.as_ref(), config))
-            .collect();
-        let h = config.box_half_side_px;
-        let mut candidates = Vec::new();
-        for (t, (track, pred)) in self.tracks.iter().zip(&predictions).enumerate() {
-            // Claims are served in tiers, cheapest first within a tier: tracks seen in the last
-            // frame with a known motion, then new tracks (their first step learnt this frame),
-            // then tracks coasting through a gap. The later tiers' predictions are the weaker
-            // ones, and where particles move many diameters per frame or turn (a vortex) they
-            // would otherwise take a detection from a track that is sure. Measured: vortex
-            // yield 54 % without tiers, 69 % with.
-            let tier = if track.missed > 0 {
-                2.0
-            } else if track.motion.is_none() {
-                1.0
-            } else {
-                0.0
-            };
-            for f in sorted_x.within(pred.x - h, pred.x + h) {
-                let feature = &features[f];
-                if (feature.rect.y - pred.y).abs() > h {
-                    continue;
-                }
-                let g = config.weight_diameter
-                    * ((feature.diameter_px - track.last.diameter_px) / d_ave).powi(2)
-                    + config.weight_brightness
-                        * ((feature.brightness - track.last.brightness) / b_ave).powi(2)
-                    + config.weight_x * ((feature.rect.x - pred.x) / scale.half_width_px).powi(2)
-                    + ((feature.rect.y - pred.y) / scale.half_height_px).powi(2);
-                candidates.push((g + tier * TIER_COST, t, f));
-            }
-        }
+        let predictions = self.predictions(features, scale, config);
+        let candidates = self.candidates(features, &predictions, scale, config);
         let pairs = assign(
             candidates,
             self.tracks.len(),
@@ -285,40 +274,11 @@ impl CameraLinker {
             let track = match track_of_feature[f] {
                 Some(t) => {
                     linked_tracks[t] = true;
-                    let old = &self.tracks[t];
-                    let frames = f64::from(old.missed + 1);
-                    let motion = (
-                        (feature.rect.x - old.last.rect.x) / frames,
-                        (feature.rect.y - old.last.rect.y) / frames,
-                    );
-                    let still = (feature.rect.x - old.anchor.x)
-                        .hypot(feature.rect.y - old.anchor.y)
-                        <= FIXTURE_RADIUS_PX;
-                    ActiveTrack {
-                        id: old.id,
-                        last: *feature,
-                        motion: Some(motion),
-                        missed: 0,
-                        age: old.age + 1,
-                        anchor: if still { old.anchor } else { feature.rect },
-                        anchored_frames: if still {
-                            old.anchored_frames + old.missed + 1
-                        } else {
-                            0
-                        },
-                    }
+                    self.tracks[t].continued_by(feature)
                 }
                 None => {
                     self.next_id += 1;
-                    ActiveTrack {
-                        id: self.next_id,
-                        last: *feature,
-                        motion: None,
-                        missed: 0,
-                        age: 1,
-                        anchor: feature.rect,
-                        anchored_frames: 0,
-                    }
+                    ActiveTrack::starting_at(self.next_id, feature)
                 }
             };
             out.push(LinkedFeature {
@@ -340,6 +300,77 @@ impl CameraLinker {
         }
         self.tracks = next_tracks;
         out
+    }
+
+    /// Where each active track expects its particle in this frame.
+    fn predictions(
+        &self,
+        features: &[Feature],
+        scale: CostScale,
+        config: &LinkConfig,
+    ) -> Vec<RectPoint> {
+        // Indexed only when some track has no motion yet: most frames of a steady flow have none.
+        let new_tracks =
+            config.predict_new_from_neighbours && self.tracks.iter().any(|t| t.motion.is_none());
+        let first_steps = (new_tracks && config.max_displacement_px > 0.0)
+            .then(|| FirstSteps::new(&self.tracks, features, scale));
+        // Tracks with a motion, indexed for new tracks to borrow it: a linear search per new
+        // track would cost a dense frame more than its detection.
+        let established = (new_tracks && config.neighbours > 0).then(|| {
+            let with_motion = self.tracks.iter().enumerate();
+            PointGrid::new(
+                with_motion.filter_map(|(i, t)| t.motion.map(|_| (t.last.rect, i))),
+                GRID_CELL_PX,
+            )
+        });
+        (0..self.tracks.len())
+            .map(|t| self.predict(t, first_steps.as_ref(), established.as_ref(), config))
+            .collect()
+    }
+
+    /// Every (track, feature) pair inside the box around the track's prediction, with its cost
+    /// G (method eq. 6) plus its tier's.
+    ///
+    /// Claims are served in tiers, cheapest first within a tier: tracks seen in the last frame
+    /// with a known motion, then new tracks (their first step learnt this frame), then tracks
+    /// coasting through a gap. The later tiers' predictions are the weaker ones, and where
+    /// particles move many diameters per frame or turn (a vortex) they would otherwise take a
+    /// detection from a track that is sure.
+    fn candidates(
+        &self,
+        features: &[Feature],
+        predictions: &[RectPoint],
+        scale: CostScale,
+        config: &LinkConfig,
+    ) -> Vec<(f64, usize, usize)> {
+        let d_ave = normalising_mean(features.iter().map(|f| f.diameter_px));
+        let b_ave = normalising_mean(features.iter().map(|f| f.brightness));
+        let sorted_x = SortedByX::new(features.iter().map(|f| f.rect));
+        let h = config.box_half_side_px;
+        let mut candidates = Vec::new();
+        for (t, (track, pred)) in self.tracks.iter().zip(predictions).enumerate() {
+            let tier = if track.missed > 0 {
+                2.0
+            } else if track.motion.is_none() {
+                1.0
+            } else {
+                0.0
+            };
+            for f in sorted_x.within(pred.x - h, pred.x + h) {
+                let feature = &features[f];
+                if (feature.rect.y - pred.y).abs() > h {
+                    continue;
+                }
+                let g = config.weight_diameter
+                    * ((feature.diameter_px - track.last.diameter_px) / d_ave).powi(2)
+                    + config.weight_brightness
+                        * ((feature.brightness - track.last.brightness) / b_ave).powi(2)
+                    + config.weight_x * ((feature.rect.x - pred.x) / scale.half_width_px).powi(2)
+                    + ((feature.rect.y - pred.y) / scale.half_height_px).powi(2);
+                candidates.push((g + tier * TIER_COST, t, f));
+            }
+        }
+        candidates
     }
 
     fn predict(

@@ -825,10 +825,9 @@ mod tests {
         ((without / 300.0).sqrt(), (with / 300.0).sqrt(), lines)
     }
 
-    /// Uniform motion: the line through 21 frames has 0.38 of the centred quadratic's noise
-    /// (0.036 against 0.095 in units of sigma / dt). It is left out where the noise happens to
-    /// look like an acceleration (one path in eight), so the RMS error falls by a third (0.0093
-    /// -> 0.0062), not more.
+    /// Uniform motion: the line through 21 frames has 0.38 of the centred quadratic's noise. It
+    /// is left out where the noise happens to look like an acceleration, so the RMS error falls
+    /// by about a third, not more.
     #[test]
     fn a_line_into_the_past_cuts_the_noise_on_a_straight_path() {
         let (without, with, lines) = with_and_without_the_past(|t| 0.5 * t);
