@@ -1,28 +1,10 @@
-//! # mrptv: mixed-reality particle tracking velocimetry
+//! # mrptv: the MR-PTV host service
 //!
-//! Two synchronized grayscale cameras in, 3D particle velocities out (Chivers 2023, MR-PTV).
+//! The algorithm is the `mrptv_engine` crate (detection, linking, stereo, 3D tracks, velocity,
+//! the mean-flow field; geometry, synthesis and scoring): pure, synchronous, no I/O. This crate
+//! is what surrounds it: files, the wire, the live service, Rerun and the command line.
 //!
 //! ## Layout
-//! - [`ptv`]: the algorithm, pure and synchronous (no I/O, no clock, no async). Stages in pipeline
-//!   order, each a function or a small state machine with named input and output types:
-//!   - [`ptv::detect`]: image -> [`ptv::Detection`] (centroid, diameter D, brightness B)
-//!   - rectification ([`geometry::Rectification`]): raw pixel -> virtual co-directional pixel
-//!   - [`ptv::link`]: per camera, frame n -> n+1, gives each feature a 2D track id (a new track's
-//!     first step from agreeing neighbours, or learnt from the images by neighbour consensus)
-//!   - [`ptv::stereo`]: left <-> right matching in the virtual pair
-//!   - triangulation ([`geometry::Rectification::triangulate`]): disparity -> point in the rig
-//!     frame, then `point_in_world = world_from_rig * point_in_rig`
-//!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity (window and order
-//!     chosen per track and component from its residuals, `fit_adaptive`)
-//!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
-//!   - [`ptv::field`]: vectors binned on a world-anchored grid (the mean-flow field).
-//! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
-//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
-//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
-//!   (`mrptv hl2ss`) turns its streams into a headset session; [`hl2ss::holograms`] draws the
-//!   vectors back through its Unity plugin's message queue.
-//! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
-//! - [`eval`]: scores velocities against truth.
 //! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
 //!   TOML config), read and written with errors that name file, line and field; [`vtk`] writes
 //!   tracks and fields for ParaView.
@@ -30,14 +12,18 @@
 //!   and the tests.
 //! - [`protocol`]: the live wire protocol (`protocol/README.md`): JSON control messages, binary
 //!   stereo frames and vector batches, coordinate conventions. Pure encode/decode; [`sparse`] is
-//!   the image encoding that fits a headset's Wi-Fi.
+//!   the image encoding that fits a headset's Wi-Fi; [`video`] decodes hl2ss's H.264.
 //! - [`server`]: `mrptv serve` (axum + tokio). A headset connection hands frames to its session's
 //!   pipeline thread through a bounded drop-oldest queue; the pipeline thread sends the headset
 //!   its [`protocol::Batch`]es, publishes them to viewers and feeds the session's recorder thread.
+//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
+//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
+//!   (`mrptv hl2ss`) turns its streams into a headset session; [`hl2ss::holograms`] draws the
+//!   vectors back through its Unity plugin's message queue.
 //! - [`rerun_log`]: `--rerun` logging of runs and sessions to `.rrd` files, a viewer or a
 //!   served gRPC log, on a logging thread behind a bounded queue.
 //! - [`client`]: the reference headset client (`mrptv replay`, and `serve --demo`'s synthetic
-//!   headset).
+//!   headset); [`tls`] its and the server's TLS.
 //! - [`load`]: `mrptv load`, a bounded load test of a `serve` child process on loopback.
 //!
 //! Threads: a pipeline detects and links the left and right images of a frame in parallel, on
@@ -45,6 +31,7 @@
 //! everything after that runs on the caller's thread. Offline, a reader decodes PNGs one frame
 //! ahead on a helper thread. Live, the tokio runtime runs the sockets; each session's pipeline
 //! and recorder have their own OS threads, so CPU-bound work never stalls the network.
+//! `docs/architecture.md` draws the whole.
 
 pub mod client;
 pub mod config;

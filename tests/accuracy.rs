@@ -433,7 +433,7 @@ fn sparse_images_fit_a_headsets_link_and_keep_the_accuracy() {
         };
         let run = |wire| {
             let mut run = SyntheticRun::new(spec.clone(), config.clone());
-            run.eval = eval.clone();
+            run.eval = eval;
             run.wire = wire;
             run.run(|_| {}).expect("scenario runs")
         };

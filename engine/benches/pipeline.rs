@@ -12,6 +12,9 @@
 //! What is not detection (linking to velocities) is the 1-thread pipeline time minus twice the
 //! detection time.
 
+// criterion's macros define undocumented functions.
+#![allow(missing_docs)]
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use mrptv_engine::detect::{DetectConfig, Detector};
 use mrptv_engine::synth::{parallel_rig, Scenario, ScenarioSpec, Synthesizer};

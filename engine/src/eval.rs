@@ -18,10 +18,15 @@ use crate::VelocityVector;
 /// A measured vector as `tracks.csv` holds it (one row), what scoring reads.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrackRow {
+    /// The frame the vector describes.
     pub frame: u64,
+    /// That frame's time, seconds.
     pub t_s: f64,
+    /// The 3D track it belongs to.
     pub track_id: u64,
+    /// Position, world frame, metres.
     pub position: Point3<f64>,
+    /// Velocity, world frame, metres per second.
     pub velocity: Vector3<f64>,
     /// 1-sigma errors (velocity, position); `None` in files written before vectors carried them.
     pub sigma: Option<(Vector3<f64>, Vector3<f64>)>,
@@ -51,12 +56,14 @@ impl From<&TrackRow> for FieldSample {
     }
 }
 
+/// How tracks are scored against truth.
 #[derive(Debug, Clone, Copy)]
 pub struct EvalOptions {
     /// A track row farther than this from every truth particle is a ghost, metres.
     pub radius_m: f64,
     /// A vector whose error exceeds this fraction of the mean speed is an outlier.
     pub outlier_fraction: f64,
+    /// Depth bins the velocity error is broken down into.
     pub depth_bins: usize,
     /// M of the velocity window: a truth particle-frame is *measurable* when the particle exists
     /// from M frames before to M frames after it (a centred estimate is impossible otherwise).
@@ -74,10 +81,14 @@ impl Default for EvalOptions {
     }
 }
 
+/// Three components of a figure (x, y, z; or u, v, w).
 #[derive(Debug, Clone, Copy, Serialize, Default, PartialEq)]
 pub struct Xyz {
+    /// x (or u).
     pub x: f64,
+    /// y (or v).
     pub y: f64,
+    /// z (or w).
     pub z: f64,
 }
 
@@ -91,22 +102,35 @@ impl From<Vector3<f64>> for Xyz {
     }
 }
 
+/// The RMS velocity error of the vectors within a range of world z.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct DepthBin {
+    /// The bin's range of world z, metres.
     pub z_min: f64,
+    /// See `z_min`.
     pub z_max: f64,
+    /// Associated rows in the bin.
     pub rows: usize,
+    /// Their RMS velocity error per component, m/s.
     pub rms_velocity_error: Xyz,
 }
 
+/// How a tracks file scores against its truth.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Report {
+    /// Association radius, metres.
     pub radius_m: f64,
+    /// First frame the tracks cover.
     pub first_frame: u64,
+    /// Last frame the tracks cover.
     pub last_frame: u64,
+    /// Vectors scored.
     pub track_rows: usize,
+    /// Distinct tracks among them.
     pub tracks: usize,
+    /// Truth particle-frames in the frames covered.
     pub truth_rows: usize,
+    /// Vectors associated with a truth particle.
     pub associated_rows: usize,
     /// Associated rows / track rows.
     pub association_rate: f64,
@@ -116,6 +140,7 @@ pub struct Report {
     pub duplicate_rate: f64,
     /// Associated truth particle-frames / truth particle-frames.
     pub yield_fraction: f64,
+    /// M: the window half-width a particle must live through to be measurable.
     pub window_frames: u64,
     /// Truth particle-frames whose particle lives through the whole +-M window.
     pub measurable_rows: usize,
@@ -125,14 +150,19 @@ pub struct Report {
     pub particle_coverage: f64,
     /// Mean |velocity| of the truth over associated rows, m/s.
     pub mean_speed_m_per_s: f64,
+    /// RMS position error per component, metres.
     pub rms_position_error_m: Xyz,
+    /// RMS velocity error per component, m/s.
     pub rms_velocity_error_m_per_s: Xyz,
     /// RMS velocity error / mean speed, per component.
     pub relative_rms_velocity_error: Xyz,
+    /// A vector is an outlier when its error exceeds this fraction of the mean speed.
     pub outlier_fraction_threshold: f64,
+    /// Outliers / associated rows.
     pub outlier_rate: f64,
     /// Rows agreeing with their track's most frequent truth particle / associated rows.
     pub track_purity: f64,
+    /// RMS velocity error by depth.
     pub by_depth: Vec<DepthBin>,
     /// How well the vectors' stated uncertainties cover their errors; `None` for a tracks file
     /// without them.
@@ -143,10 +173,15 @@ pub struct Report {
 /// stated sigmas (a Gaussian error with the right sigma gives 68.3 % and 95.4 %).
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Coverage {
+    /// Associated vectors that carry sigmas.
     pub rows: usize,
+    /// Within 1 sigma, per velocity component.
     pub velocity_within_1_sigma: Xyz,
+    /// Within 2 sigma, per velocity component.
     pub velocity_within_2_sigma: Xyz,
+    /// Within 1 sigma, per position component.
     pub position_within_1_sigma: Xyz,
+    /// Within 2 sigma, per position component.
     pub position_within_2_sigma: Xyz,
     /// Median stated velocity sigma per component: how large the uncertainties are.
     pub median_velocity_sigma_m_per_s: Xyz,
@@ -192,12 +227,20 @@ fn coverage(associations: &[Association]) -> Option<Coverage> {
     })
 }
 
+/// Why a tracks file cannot be scored.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum EvalError {
+    /// The tracks file holds no vectors.
     #[error("no velocity vectors to score (a centred estimate needs a particle seen through 2M+1 frames)")]
     NoTracks,
+    /// The truth has no rows in the frames the tracks cover.
     #[error("no truth rows in frames {first}..={last} covered by the tracks")]
-    NoTruth { first: u64, last: u64 },
+    NoTruth {
+        /// First frame the tracks cover.
+        first: u64,
+        /// Last frame the tracks cover.
+        last: u64,
+    },
 }
 
 struct Association {

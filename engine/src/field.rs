@@ -15,9 +15,13 @@ use crate::VelocityVector;
 /// One velocity sample as the grid keeps it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FieldSample {
+    /// Time of the vector, seconds.
     pub t_s: f64,
+    /// The 3D track it belongs to.
     pub track_id: u64,
+    /// Position, world frame, metres.
     pub position: Point3<f64>,
+    /// Velocity, world frame, m/s.
     pub velocity: Vector3<f64>,
 }
 
@@ -32,10 +36,13 @@ impl From<&VelocityVector> for FieldSample {
     }
 }
 
+/// Why a field cannot be set up.
 #[derive(Debug, Clone, thiserror::Error, PartialEq)]
 pub enum FieldError {
+    /// The cell size is not a positive number of metres.
     #[error("field cell size {0} m: must be a positive finite length")]
     Cell(f64),
+    /// The averaging window is not a positive number of seconds.
     #[error("field time window {0} s: must be positive and finite")]
     Window(f64),
 }
@@ -46,12 +53,15 @@ pub type CellIndex = [i64; 3];
 /// A cell's statistics.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CellSummary {
+    /// The cell's index on the grid.
     pub index: CellIndex,
     /// The cell's centre, world frame, metres.
     pub centre: Point3<f64>,
+    /// Vectors binned into it.
     pub samples: usize,
     /// Distinct tracks among the samples.
     pub tracks: usize,
+    /// Their mean velocity, m/s.
     pub mean: Vector3<f64>,
     /// Sample standard deviation per component (0 for a single sample).
     pub std: Vector3<f64>,
@@ -185,10 +195,12 @@ impl FieldGrid {
         })
     }
 
+    /// Side of a cell, metres.
     pub fn cell_m(&self) -> f64 {
         self.cell_m
     }
 
+    /// How far back samples count, seconds (`None`: all of them).
     pub fn window_s(&self) -> Option<f64> {
         self.window_s
     }
@@ -198,6 +210,7 @@ impl FieldGrid {
         self.added
     }
 
+    /// The cell holding `p`, if it is on the grid.
     pub fn index_of(&self, p: &Point3<f64>) -> Option<CellIndex> {
         let index = [0, 1, 2].map(|c| (p[c] / self.cell_m).floor());
         // Beyond i64's range (or not finite) is no place in a room.
@@ -233,6 +246,7 @@ impl FieldGrid {
         }
     }
 
+    /// Bins `vectors`.
     pub fn add_vectors<'a>(&mut self, vectors: impl IntoIterator<Item = &'a VelocityVector>) {
         for v in vectors {
             self.add(FieldSample::from(v));
@@ -262,10 +276,12 @@ impl FieldGrid {
             .map(|(index, cell)| cell.summary(*index, self.cell_m))
     }
 
+    /// Cells with samples.
     pub fn len(&self) -> usize {
         self.cells.len()
     }
 
+    /// Whether no cell has samples.
     pub fn is_empty(&self) -> bool {
         self.cells.is_empty()
     }
@@ -285,6 +301,7 @@ impl StreamField {
     /// Vectors that size the default grid: enough to see the measurement volume.
     pub const SIZING_VECTORS: usize = 500;
 
+    /// A field of cells `cell_m` wide (learnt from the first vectors when `None`), averaging over `window_s`.
     pub fn new(cell_m: Option<f64>, window_s: Option<f64>) -> Result<Self, FieldError> {
         let grid = cell_m.map(|c| FieldGrid::new(c, window_s)).transpose()?;
         if grid.is_none() {
@@ -298,6 +315,7 @@ impl StreamField {
         })
     }
 
+    /// Bins a frame's vectors (after the cell size is learnt).
     pub fn add_vectors(&mut self, vectors: &[VelocityVector]) {
         if let Some(grid) = &mut self.grid {
             grid.add_vectors(vectors);

@@ -6,8 +6,11 @@ use nalgebra::Isometry3;
 /// A borrowed 8-bit grayscale image, row-major, no padding.
 #[derive(Debug, Clone, Copy)]
 pub struct ImageView<'a> {
+    /// Pixels per row.
     pub width: usize,
+    /// Rows.
     pub height: usize,
+    /// Row-major pixels, `width * height` of them.
     pub pixels: &'a [u8],
 }
 
@@ -37,11 +40,14 @@ impl<'a> ImageView<'a> {
 /// One synchronized stereo pair as the pipeline consumes it.
 #[derive(Debug, Clone, Copy)]
 pub struct StereoFrame<'a> {
+    /// The frame's index as its source numbered it.
     pub index: u64,
     /// Sensor timestamp, seconds; must increase from frame to frame.
     pub t_s: f64,
     /// Headset pose for this frame; `None` means world = rig.
     pub world_from_rig: Option<Isometry3<f64>>,
+    /// The left camera's image.
     pub left: ImageView<'a>,
+    /// The right camera's image.
     pub right: ImageView<'a>,
 }

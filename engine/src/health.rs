@@ -22,6 +22,7 @@ pub struct RunTotals {
 /// A run's health figures (see [`RunTotals::health`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct HealthFigures {
+    /// Detections per image.
     pub detections_per_image: f64,
     /// Of all detections, those continuing a track from an earlier frame.
     pub linked_fraction: f64,

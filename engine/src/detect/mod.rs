@@ -1,14 +1,14 @@
 //! Stage 1: particle detection in one grayscale image (method section 3.1), one module per
 //! operation, in the order an image goes through them:
 //!
-//! 1. [`blur`]: the 5x5 Gaussian blur; on the way the [`background`] model (what stands still
+//! 1. `blur`: the 5x5 Gaussian blur; on the way the `background` model (what stands still
 //!    in the image, [`DetectConfig::background_rise_per_frame`]) is taken out of each row;
-//! 2. [`threshold`]: the adaptive threshold against the 15x15 box mean minus C;
-//! 3. [`regions`]: the 8-connected regions of the binary image and their moments;
-//! 4. [`split`]: regions of several particles split between their peaks or cut until each part
-//!    is round ([`DetectConfig::split_touching`]), and [`fit`]: the parts fitted together as
-//!    [`spots`] ([`DetectConfig::fit_overlaps`]);
-//! 5. [`expected`]: a region fitted again where the tracks expect more particles than its shape
+//! 2. `threshold`: the adaptive threshold against the 15x15 box mean minus C;
+//! 3. `regions`: the 8-connected regions of the binary image and their moments;
+//! 4. `split`: regions of several particles split between their peaks or cut until each part
+//!    is round ([`DetectConfig::split_touching`]), and `fit`: the parts fitted together as
+//!    `spots` ([`DetectConfig::fit_overlaps`]);
+//! 5. `expected`: a region fitted again where the tracks expect more particles than its shape
 //!    showed ([`Detector::separate_expected`]).
 
 use crate::config::{check_non_negative, ConfigError};
@@ -23,7 +23,7 @@ mod expected;
 mod fit;
 mod regions;
 mod split;
-pub mod spots;
+mod spots;
 mod threshold;
 
 use background::Background;
@@ -70,6 +70,7 @@ pub struct DetectConfig {
     pub min_area_px: usize,
     /// Regions larger than this are reflections or background structure, not particles.
     pub max_area_px: usize,
+    /// How each pixel weighs in a centroid.
     pub centroid_weight: CentroidWeight,
     /// Drop regions touching the image border: part of the particle is outside the image, so
     /// its centroid, diameter and brightness are all biased.
@@ -166,11 +167,13 @@ impl DetectConfig {
 /// One detected particle image.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Detection {
+    /// Intensity-weighted centroid, raw image pixels.
     pub centroid: PixelPoint,
     /// Equivalent diameter: the circle with the region's area, pixels.
     pub diameter_px: f64,
     /// Intensity at the centroid (bilinear) above the background model, grey levels.
     pub brightness: f64,
+    /// Pixels in the region (or its share of a fitted region).
     pub area_px: u32,
     /// How it was told apart from its neighbours, which decides what its centroid is good for.
     pub separation: Separation,
@@ -183,8 +186,8 @@ pub enum Separation {
     /// On its own, or parted from a touching neighbour at a dip between their peaks.
     Clear,
     /// Overlapping a neighbour, separated by fitting both as spots, and the fit is trustworthy
-    /// ([`spots::SpotFit::is_trustworthy`]), or, for a spot seeded where a track expected it, its
-    /// centre is pinned down by the pixels ([`spots::SpotFit::is_measured`]): centroids within about
+    /// (it explains the pixels and the spots are apart), or, for a spot seeded where a track
+    /// expected it, its centre is pinned down by the pixels: centroids within about
     /// 0.1 px. Measured where a track's clear samples do not support a velocity fit on their
     /// own.
     Fitted,

@@ -10,10 +10,15 @@ use nalgebra::{SMatrix, SVector};
 /// flat top of a disc image wider than the blur.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Spot {
+    /// Centre, pixels.
     pub x: f64,
+    /// See `x`.
     pub y: f64,
+    /// Peak height above the floor, grey levels.
     pub amplitude: f64,
+    /// Width, pixels.
     pub sigma: f64,
+    /// 1 for a Gaussian, larger for a flatter top.
     pub flatness: f64,
 }
 
@@ -65,6 +70,7 @@ pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit>
 /// Fitted spots and how far the samples stray from them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SpotFit {
+    /// The fitted spots, in seed order.
     pub spots: Vec<Spot>,
     /// Root-mean-square difference between the samples and the fitted model, grey levels.
     pub rms_residual: f64,

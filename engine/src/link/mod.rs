@@ -42,6 +42,7 @@ pub struct LinkConfig {
     pub weight_brightness: f64,
     /// l3: weight of the x-position term (the y term has weight 1).
     pub weight_x: f64,
+    /// How claims on a feature are settled.
     pub assignment: Assignment,
     /// Predict a track's first link from the median motion of nearby established tracks instead
     /// of assuming it stands still (the method). Matters when particles move several diameters
@@ -112,15 +113,20 @@ impl LinkConfig {
 /// A detection after rectification: what linking and stereo matching need.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Feature {
+    /// Centroid, rectified pixels.
     pub rect: RectPoint,
+    /// Equivalent diameter D, pixels.
     pub diameter_px: f64,
+    /// Brightness B, grey levels.
     pub brightness: f64,
 }
 
 /// A feature with its per-camera track.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LinkedFeature {
+    /// The feature.
     pub feature: Feature,
+    /// Its per-camera track.
     pub track_id: u64,
     /// Apparent displacement per frame, rectified pixels (None on a new track).
     pub motion_px: Option<(f64, f64)>,
@@ -224,11 +230,14 @@ const TIER_COST: f64 = 1e6;
 /// Normalisation of the cost terms: the method's image-wide means and half image size.
 #[derive(Debug, Clone, Copy)]
 pub struct CostScale {
+    /// Half the rectified image width, pixels.
     pub half_width_px: f64,
+    /// Half the rectified image height, pixels.
     pub half_height_px: f64,
 }
 
 impl CameraLinker {
+    /// A linker with no tracks yet.
     pub fn new() -> Self {
         Self::default()
     }

@@ -28,6 +28,7 @@ mod depth;
 
 pub use depth::DepthLearner;
 
+/// Stereo matching parameters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StereoConfig {
@@ -50,7 +51,9 @@ pub struct StereoConfig {
     /// c1, c2, c3: weights of the diameter, speed and brightness terms (published: 0.100, 0.036,
     /// 0.018).
     pub weight_diameter: f64,
+    /// See `weight_diameter`.
     pub weight_speed: f64,
+    /// See `weight_diameter`.
     pub weight_brightness: f64,
     /// Weight of the row-difference term (method: 1). After rectification the rows of a true
     /// pair agree to a fraction of a pixel, far better than diameters agree; at weight 1 a
@@ -58,6 +61,7 @@ pub struct StereoConfig {
     /// similar depth can be cross-matched. 100 makes a 1 px row offset cost about as much as
     /// a 10 % diameter mismatch.
     pub weight_row: f64,
+    /// How claims on a right feature are settled.
     pub assignment: Assignment,
     /// Weight of a track pair's past cost in its effective cost, 0..1: `effective = w * past +
     /// (1 - w) * now`. 0 decides every frame afresh (the method). Above 0, a left track that
@@ -147,11 +151,13 @@ pub struct StereoSearch {
     /// A right particle matches only at a disparity `X_L - X_R` in this open interval, pixels;
     /// the minimum is never negative (a point in front of both cameras).
     pub min_disparity_px: f64,
+    /// See `min_disparity_px`.
     pub max_disparity_px: f64,
     /// ... and on a row within this many pixels of the left particle's.
     pub epipolar_band_px: f64,
     /// The depths those disparities stand for, metres (`far` is infinite for a zero minimum).
     pub near_m: f64,
+    /// See `near_m`.
     pub far_m: f64,
 }
 
@@ -162,15 +168,21 @@ pub enum SearchError {
         "stereo.depth_range_m {near_m}..{far_m} m lies outside the depths at which the two cameras \
          see the same points ({overlap_near_m:.3}..{overlap_far_m:.3} m)"
     )]
+    /// The given depth range and the cameras' shared view do not overlap.
     DepthRangeOutsideOverlap {
+        /// The range asked for, metres.
         near_m: f64,
+        /// See `near_m`.
         far_m: f64,
+        /// The depths the views share, metres.
         overlap_near_m: f64,
+        /// See `overlap_near_m`.
         overlap_far_m: f64,
     },
 }
 
 impl StereoSearch {
+    /// The hard filter for `config` on the rectified pair `rect`.
     pub fn new(config: &StereoConfig, rect: &Rectification) -> Result<Self, SearchError> {
         let fh = rect.focal_px * rect.baseline_m;
         let depth = |disparity: f64| depth_at(fh, disparity);

@@ -16,24 +16,32 @@ pub struct Mode {
     omega: f64,
 }
 
+/// The flow the particles follow.
 #[derive(Debug, Clone)]
 pub enum Flow {
+    /// One velocity everywhere, m/s.
     Uniform(Vector3<f64>),
     /// Solid-body rotation about an axis along world z through `axis`, plus a uniform drift
     /// along it: speed grows linearly from the axis, with a centripetal acceleration.
     Vortex {
+        /// A point on the axis (along z), metres.
         axis: Point3<f64>,
+        /// Angular velocity, rad/s.
         omega_rad_s: f64,
+        /// Speed along the axis, m/s.
         axial_m_s: f64,
     },
     /// Kinematic-simulation turbulence: a sum of divergence-free modes with a k^-5/3 spectrum.
     Turbulence {
+        /// Mean velocity added to the modes, m/s.
         mean: Vector3<f64>,
+        /// The Fourier modes.
         modes: Vec<Mode>,
     },
 }
 
 impl Flow {
+    /// The velocity at `x` and time `t`, m/s.
     pub fn velocity(&self, x: &Point3<f64>, t: f64) -> Vector3<f64> {
         match self {
             Flow::Uniform(v) => *v,
@@ -109,15 +117,19 @@ pub enum HeadMotion {
     Fixed(Isometry3<f64>),
     /// Sinusoidal sway and turn about a base pose.
     Oscillating {
+        /// Translation amplitude per axis, metres.
         translation_amplitude_m: Vector3<f64>,
+        /// Translation frequency per axis, Hz.
         translation_frequency_hz: Vector3<f64>,
         /// Roll, pitch, yaw amplitudes, radians.
         rotation_amplitude_rad: Vector3<f64>,
+        /// Rotation frequency per axis, Hz.
         rotation_frequency_hz: Vector3<f64>,
     },
 }
 
 impl HeadMotion {
+    /// The headset's pose at `t_s` (`None`: world = rig).
     pub fn world_from_rig(&self, t_s: f64) -> Option<Isometry3<f64>> {
         match self {
             HeadMotion::None => None,

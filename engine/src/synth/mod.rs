@@ -26,27 +26,39 @@ pub use scenario::{Clutter, Scenario, ScenarioSpec};
 /// One row of `truth.csv`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TruthRow {
+    /// The frame.
     pub frame: u64,
+    /// Its time, seconds.
     pub t_s: f64,
+    /// The particle's id (a new one each time it re-enters).
     pub pid: u64,
+    /// Position, world frame, metres.
     pub position: Point3<f64>,
+    /// Velocity, world frame, m/s.
     pub velocity: Vector3<f64>,
 }
 
 /// One rendered frame with its truth.
 #[derive(Debug, Clone)]
 pub struct SynthFrame {
+    /// The frame's index.
     pub index: u64,
+    /// Its time, seconds.
     pub t_s: f64,
+    /// The headset's pose (`None`: world = rig).
     pub world_from_rig: Option<Isometry3<f64>>,
+    /// The left image, row-major.
     pub left: Vec<u8>,
+    /// The right image, row-major.
     pub right: Vec<u8>,
+    /// The truth of every particle in the domain.
     pub truth: Vec<TruthRow>,
     /// Particles whose centre projects inside both images.
     pub visible_in_both: usize,
     /// Particles whose centre projects inside the left image, and those of them whose image
     /// there touches or overlaps another particle's.
     pub in_view_left: usize,
+    /// See `in_view_left`.
     pub touching_left: usize,
 }
 
@@ -72,6 +84,7 @@ pub struct Synthesizer {
 }
 
 impl Synthesizer {
+    /// A generator of `spec` with `particles` particles, deterministic for `seed`.
     pub fn new(spec: ScenarioSpec, particles: usize, seed: u64) -> Self {
         let mut room = Rng::new(seed ^ 0x0F1C_E5EE_D000_0001);
         let (fixed_left, fixed_right) = fixed_layers(&spec, &mut room);

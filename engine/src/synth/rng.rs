@@ -9,10 +9,12 @@ use nalgebra::Vector3;
 pub struct Rng(u64);
 
 impl Rng {
+    /// A generator seeded with `seed`.
     pub fn new(seed: u64) -> Self {
         Self(seed)
     }
 
+    /// The next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
@@ -26,6 +28,7 @@ impl Rng {
         (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
 
+    /// Uniform in `lo..hi`.
     pub fn range(&mut self, lo: f64, hi: f64) -> f64 {
         lo + (hi - lo) * self.uniform()
     }
@@ -37,6 +40,7 @@ impl Rng {
         (-2.0 * u1.ln()).sqrt() * (2.0 * PI * u2).cos()
     }
 
+    /// A uniformly random direction.
     pub fn unit_vector(&mut self) -> Vector3<f64> {
         loop {
             let v = Vector3::new(self.normal(), self.normal(), self.normal());

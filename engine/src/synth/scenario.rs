@@ -10,26 +10,43 @@ use super::rigs::{axes_crossing, convergent_rig, hololens_raw_rig, parallel_rig}
 use super::{Flow, HeadMotion, Rng};
 use crate::geometry::StereoRig;
 
+/// The named scenarios (`mrptv synth --help` and `demo --help` describe each).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Scenario {
+    /// The method's validation case.
     Uniform,
+    /// A HoloLens-2-like flume.
     Flume,
+    /// A wind tunnel.
     WindTunnel,
+    /// Synthetic turbulence.
     Turbulence,
+    /// The uniform case, densely seeded.
     Dense,
+    /// The flume seen by a moving head.
     MovingHead,
+    /// The raw HoloLens 2 geometry.
     HololensRaw,
+    /// A convergent lab rig.
     Convergent,
+    /// A fast wind tunnel.
     Fast,
+    /// Creeping flow.
     Creep,
+    /// A vortex.
     Vortex,
+    /// A long-lens convergent rig.
     WideConvergent,
+    /// The raw HoloLens 2 geometry in a furnished room.
     Cluttered,
+    /// Dense seeding.
     Seeded,
+    /// Dense seeding in turbulence.
     SeededTurbulence,
 }
 
 impl Scenario {
+    /// Every scenario, in the order help lists them.
     pub const ALL: [Scenario; 15] = [
         Scenario::Uniform,
         Scenario::Flume,
@@ -48,6 +65,7 @@ impl Scenario {
         Scenario::SeededTurbulence,
     ];
 
+    /// The name commands take.
     pub fn name(self) -> &'static str {
         match self {
             Scenario::Uniform => "uniform",
@@ -68,6 +86,7 @@ impl Scenario {
         }
     }
 
+    /// A line on what it tests.
     pub fn description(self) -> &'static str {
         match self {
             Scenario::Uniform => "the method's validation case: unit cube, 100 particles, (u,v,w) = (1,0,-1), 960x720, h = 0.1, M = 5",
@@ -112,16 +131,25 @@ impl FromStr for Scenario {
 /// Everything that defines a scenario.
 #[derive(Debug, Clone)]
 pub struct ScenarioSpec {
+    /// Which scenario.
     pub scenario: Scenario,
+    /// Its cameras.
     pub rig: StereoRig,
+    /// Time between frames, seconds.
     pub frame_interval_s: f64,
+    /// Frames when none are asked for.
     pub default_frames: usize,
+    /// Particles when none are asked for.
     pub default_particles: usize,
     /// Axis-aligned box in the world frame the particles live in.
     pub domain_min: Point3<f64>,
+    /// See `domain_min`.
     pub domain_max: Point3<f64>,
+    /// The flow.
     pub flow: Flow,
+    /// Mean particle diameter, metres.
     pub diameter_m: f64,
+    /// Its standard deviation, metres.
     pub diameter_sd_m: f64,
     /// The method's illumination coefficient l: brightness = l / (4 pi R^2), grey levels m^2.
     pub illumination: f64,
@@ -129,10 +157,13 @@ pub struct ScenarioSpec {
     pub brightness_spread: f64,
     /// Background grey level at the image's left edge, and its rise to the right edge.
     pub background: f64,
+    /// See `background`.
     pub background_gradient: f64,
     /// Relative change of particle brightness from the image's left edge to its right edge.
     pub illumination_gradient: f64,
+    /// Sensor noise, grey levels (standard deviation).
     pub noise_sd: f64,
+    /// How the headset moves.
     pub head: HeadMotion,
     /// What a real camera and room add (all off in the idealised scenes).
     pub clutter: Clutter,

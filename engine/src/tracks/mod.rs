@@ -1,6 +1,6 @@
 //! Stage 4: 3D tracks. Each frame's stereo pairs, triangulated, continue the 3D tracks of their
 //! camera tracks; a pair no live 3D track continues is a new particle, unless it lies where a
-//! broken 3D track's recent path predicts ([`rejoin`]). A 3D track survives a gap as long as its
+//! broken 3D track's recent path predicts (`rejoin`). A 3D track survives a gap as long as its
 //! left camera track coasts, and is then retired and kept the `M` frames its last samples may
 //! still centre a velocity window on.
 

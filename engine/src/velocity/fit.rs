@@ -258,7 +258,9 @@ pub struct FitChoice {
 /// A velocity whose fit was chosen per component from the data.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AdaptiveFit {
+    /// The fit.
     pub fit: MotionFit,
+    /// Each component's chosen fit.
     pub choice: [FitChoice; 3],
 }
 

@@ -1,7 +1,7 @@
 //! What each vector's stated 1-sigma errors rest on: a fit's [`UncertaintyBudget`] (the sample
 //! noise its residuals show and how the fitted velocity and position respond to noise and to
 //! the path terms the fit does not reach), weighed against what the scene's other tracks show
-//! ([`ScenePrior`], learnt by the [`ScenePool`]).
+//! ([`ScenePrior`], learnt by the scene pool).
 
 use std::collections::VecDeque;
 

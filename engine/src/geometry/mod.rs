@@ -13,10 +13,18 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+mod lens;
+mod rectification;
+
+pub use lens::{CameraModel, Distortion};
+pub use rectification::{Rectification, Triangulated};
+
 /// A position in a raw camera image, in pixels (OpenCV convention).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PixelPoint {
+    /// Column, pixels (0 at the centre of the leftmost pixel).
     pub x: f64,
+    /// Row, pixels (0 at the centre of the top pixel).
     pub y: f64,
 }
 
@@ -24,17 +32,29 @@ pub struct PixelPoint {
 /// (the method's "image plane origin at the image centre").
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct RectPoint {
+    /// Along the baseline, rectified pixels.
     pub x: f64,
+    /// Across it (the epipolar row), rectified pixels.
     pub y: f64,
 }
 
 /// What is wrong with a calibration, naming the offending field.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum CalibrationError {
+    /// A number is NaN or infinite.
     #[error("{field} is not a finite number")]
-    NotFinite { field: String },
+    NotFinite {
+        /// The field, as `rig.json` names it.
+        field: String,
+    },
+    /// A value is out of its range.
     #[error("{field}: {reason}")]
-    Invalid { field: String, reason: String },
+    Invalid {
+        /// The field, as `rig.json` names it.
+        field: String,
+        /// What it must be.
+        reason: String,
+    },
 }
 
 fn invalid(field: &str, reason: impl Into<String>) -> CalibrationError {
@@ -49,160 +69,32 @@ fn invalid(field: &str, reason: impl Into<String>) -> CalibrationError {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct RigFile {
+    /// [width, height], pixels.
     pub image_size: [u32; 2],
+    /// Left camera matrix.
     pub K1: [[f64; 3]; 3],
+    /// Left camera distortion.
     pub D1: Vec<f64>,
+    /// Right camera matrix.
     pub K2: [[f64; 3]; 3],
+    /// Right camera distortion.
     pub D2: Vec<f64>,
+    /// Rotation from the left camera's frame to the right's.
     pub R: [[f64; 3]; 3],
+    /// Translation: `x_right = R x_left + T`, metres.
     pub T: [f64; 3],
-}
-
-/// OpenCV's radial-tangential model with the optional rational terms.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Distortion {
-    pub k1: f64,
-    pub k2: f64,
-    pub p1: f64,
-    pub p2: f64,
-    pub k3: f64,
-    pub k4: f64,
-    pub k5: f64,
-    pub k6: f64,
-}
-
-impl Distortion {
-    fn from_coefficients(field: &str, d: &[f64]) -> Result<Self, CalibrationError> {
-        let mut c = [0.0; 8];
-        match d.len() {
-            0 | 4 | 5 | 8 => c[..d.len()].copy_from_slice(d),
-            n => {
-                return Err(invalid(
-                    field,
-                    format!(
-                        "expected 0, 4, 5 or 8 coefficients [k1,k2,p1,p2,k3,k4,k5,k6], got {n}"
-                    ),
-                ))
-            }
-        }
-        Ok(Self {
-            k1: c[0],
-            k2: c[1],
-            p1: c[2],
-            p2: c[3],
-            k3: c[4],
-            k4: c[5],
-            k5: c[6],
-            k6: c[7],
-        })
-    }
-
-    fn coefficients(&self) -> Vec<f64> {
-        let all = [
-            self.k1, self.k2, self.p1, self.p2, self.k3, self.k4, self.k5, self.k6,
-        ];
-        if all[5..].iter().any(|&v| v != 0.0) {
-            all.to_vec()
-        } else if all == [0.0; 8] {
-            Vec::new()
-        } else {
-            all[..5].to_vec()
-        }
-    }
-
-    /// Distorts an ideal normalized image point (x/z, y/z).
-    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        let r2 = x * x + y * y;
-        let radial = (1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3)))
-            / (1.0 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6)));
-        (
-            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
-            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
-        )
-    }
-
-    /// Inverts [`Self::distort`] by fixed-point iteration (as OpenCV's `undistortPoints`), but
-    /// iterates to convergence and checks the result, so a point outside the model's invertible
-    /// region yields `None` instead of a silently wrong position.
-    pub fn undistort(&self, xd: f64, yd: f64) -> Option<(f64, f64)> {
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..200 {
-            let r2 = x * x + y * y;
-            let inv_radial = (1.0 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6)))
-                / (1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3)));
-            let dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
-            let dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
-            let (nx, ny) = ((xd - dx) * inv_radial, (yd - dy) * inv_radial);
-            let step = (nx - x).abs() + (ny - y).abs();
-            x = nx;
-            y = ny;
-            if step < 1e-14 {
-                break;
-            }
-        }
-        let (cx, cy) = self.distort(x, y);
-        ((cx - xd).abs() < 1e-9 && (cy - yd).abs() < 1e-9 && x.is_finite() && y.is_finite())
-            .then_some((x, y))
-    }
-}
-
-/// One camera's intrinsics.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CameraModel {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub skew: f64,
-    pub distortion: Distortion,
-}
-
-impl CameraModel {
-    pub fn pinhole(f_px: f64, cx: f64, cy: f64) -> Self {
-        Self {
-            fx: f_px,
-            fy: f_px,
-            cx,
-            cy,
-            skew: 0.0,
-            distortion: Distortion::default(),
-        }
-    }
-
-    /// Projects a point in this camera's frame; `None` behind the camera.
-    pub fn project(&self, p: &Point3<f64>) -> Option<PixelPoint> {
-        if p.z <= 1e-12 {
-            return None;
-        }
-        let (xd, yd) = self.distortion.distort(p.x / p.z, p.y / p.z);
-        Some(PixelPoint {
-            x: self.fx * xd + self.skew * yd + self.cx,
-            y: self.fy * yd + self.cy,
-        })
-    }
-
-    /// The ideal normalized coordinates (x/z, y/z) seen at a pixel.
-    pub fn unproject(&self, p: PixelPoint) -> Option<(f64, f64)> {
-        let yd = (p.y - self.cy) / self.fy;
-        let xd = (p.x - self.cx - self.skew * yd) / self.fx;
-        self.distortion.undistort(xd, yd)
-    }
-
-    fn matrix(&self) -> [[f64; 3]; 3] {
-        [
-            [self.fx, self.skew, self.cx],
-            [0.0, self.fy, self.cy],
-            [0.0, 0.0, 1.0],
-        ]
-    }
 }
 
 /// A validated stereo rig.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StereoRig {
+    /// Image width, pixels.
     pub width: u32,
+    /// Image height, pixels.
     pub height: u32,
+    /// The left camera.
     pub left: CameraModel,
+    /// The right camera.
     pub right: CameraModel,
     /// `point_in_right = right_from_left * point_in_left` (OpenCV's R, T).
     pub right_from_left: Isometry3<f64>,
@@ -298,6 +190,7 @@ pub fn rotation_from_matrix(
 }
 
 impl StereoRig {
+    /// The rig a `rig.json` describes, refused where a value is not finite or not valid.
     pub fn from_file(rig: &RigFile) -> Result<Self, CalibrationError> {
         let [width, height] = rig.image_size;
         if width < 2 || height < 2 {
@@ -329,6 +222,7 @@ impl StereoRig {
         Ok(rig)
     }
 
+    /// The rig as `rig.json` writes it.
     pub fn to_file(&self) -> RigFile {
         let r = self.right_from_left.rotation.to_rotation_matrix();
         let t = self.right_from_left.translation.vector;
@@ -351,211 +245,13 @@ impl StereoRig {
         )
     }
 
+    /// Whether a pixel lies on the image.
     pub fn contains(&self, p: PixelPoint) -> bool {
         p.x >= -0.5
             && p.y >= -0.5
             && p.x < self.width as f64 - 0.5
             && p.y < self.height as f64 - 0.5
     }
-}
-
-/// The virtual co-directional pair: both cameras rotated to a common orientation whose x axis runs
-/// along the baseline, with one focal length. The left virtual camera sits at the rig origin and
-/// the right one at `+baseline_m` along the rectified x axis, so disparity `X_L - X_R` is positive.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Rectification {
-    left: CameraModel,
-    right: CameraModel,
-    rect_from_left: Rotation3<f64>,
-    rect_from_right: Rotation3<f64>,
-    pub focal_px: f64,
-    pub baseline_m: f64,
-    /// Half the rectified image extent along x and y (the method's X_image, Y_image).
-    pub half_width_px: f64,
-    pub half_height_px: f64,
-    /// See [`Self::overlap_disparity_px`].
-    overlap_disparity_px: (f64, f64),
-}
-
-impl Rectification {
-    pub fn new(rig: &StereoRig) -> Result<Self, CalibrationError> {
-        let left_from_right_rot = rig.right_from_left.rotation.inverse();
-        let right_centre_in_left = -(left_from_right_rot * rig.right_from_left.translation.vector);
-        let baseline_m = right_centre_in_left.norm();
-        let x_axis = right_centre_in_left / baseline_m;
-        let right_axis = left_from_right_rot * Vector3::z();
-        if right_axis.z <= 0.0 {
-            return Err(invalid(
-                "R",
-                "the optical axes are 90 degrees or more apart: the cameras cannot share a view",
-            ));
-        }
-        let mean_axis = Vector3::z() + right_axis;
-        let z_axis = mean_axis - x_axis * mean_axis.dot(&x_axis);
-        if z_axis.norm() < 1e-3 {
-            return Err(invalid(
-                "R, T",
-                "the cameras look along the baseline; no common viewing direction",
-            ));
-        }
-        let z_axis = z_axis.normalize();
-        let y_axis = z_axis.cross(&x_axis);
-        let rect_from_left = Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[
-            x_axis.transpose(),
-            y_axis.transpose(),
-            z_axis.transpose(),
-        ]));
-        let rect_from_right = rect_from_left * left_from_right_rot.to_rotation_matrix();
-        let focal_px = (rig.left.fx + rig.left.fy + rig.right.fx + rig.right.fy) / 4.0;
-        let mut rect = Self {
-            left: rig.left,
-            right: rig.right,
-            rect_from_left,
-            rect_from_right,
-            focal_px,
-            baseline_m,
-            half_width_px: 0.0,
-            half_height_px: 0.0,
-            overlap_disparity_px: (0.0, 0.0),
-        };
-        let left = Self::rectified_border(rig, |p| rect.left_to_rect(p));
-        let right = Self::rectified_border(rig, |p| rect.right_to_rect(p));
-        let (Some(left), Some(right)) = (left, right) else {
-            return Err(invalid(
-                "K1, D1, K2, D2",
-                "the image border cannot be undistorted",
-            ));
-        };
-        // The method normalises by half the image size; in the virtual camera that is half the
-        // extent of the left image's border once rectified.
-        rect.half_width_px = (left.max_x - left.min_x) / 2.0;
-        rect.half_height_px = (left.max_y - left.min_y) / 2.0;
-        // From the left image's near edge against the right image's far edge, and back.
-        let (min_disparity, max_disparity) = (left.min_x - right.max_x, left.max_x - right.min_x);
-        rect.overlap_disparity_px = (min_disparity, max_disparity);
-        if max_disparity <= min_disparity.max(0.0) {
-            return Err(invalid(
-                "R, T",
-                "the two cameras' views do not overlap at any depth in front of them",
-            ));
-        }
-        Ok(rect)
-    }
-
-    /// The bounding box of one image's border once rectified; `None` when it cannot be mapped.
-    fn rectified_border(
-        rig: &StereoRig,
-        to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
-    ) -> Option<RectBox> {
-        let (w, h) = (rig.width as f64 - 1.0, rig.height as f64 - 1.0);
-        let mut b = RectBox {
-            min_x: f64::MAX,
-            max_x: f64::MIN,
-            min_y: f64::MAX,
-            max_y: f64::MIN,
-        };
-        let steps = 64;
-        for i in 0..=steps {
-            let s = i as f64 / steps as f64;
-            for p in [(s * w, 0.0), (s * w, h), (0.0, s * h), (w, s * h)] {
-                if let Some(r) = to_rect(PixelPoint { x: p.0, y: p.1 }) {
-                    b.min_x = b.min_x.min(r.x);
-                    b.max_x = b.max_x.max(r.x);
-                    b.min_y = b.min_y.min(r.y);
-                    b.max_y = b.max_y.max(r.y);
-                }
-            }
-        }
-        (b.min_x < b.max_x && b.min_y < b.max_y).then_some(b)
-    }
-
-    /// The disparities `X_L - X_R` a point seen by both cameras can have, `(min, max)` pixels.
-    /// The minimum is negative when the views overlap out to infinity (a parallel or diverging
-    /// pair).
-    pub fn overlap_disparity_px(&self) -> (f64, f64) {
-        self.overlap_disparity_px
-    }
-
-    fn to_rect(
-        &self,
-        camera: &CameraModel,
-        rect_from_cam: &Rotation3<f64>,
-        p: PixelPoint,
-    ) -> Option<RectPoint> {
-        let (x, y) = camera.unproject(p)?;
-        let ray = rect_from_cam * Vector3::new(x, y, 1.0);
-        (ray.z > 1e-9).then(|| RectPoint {
-            x: self.focal_px * ray.x / ray.z,
-            y: self.focal_px * ray.y / ray.z,
-        })
-    }
-
-    fn rect_to_camera(
-        &self,
-        camera: &CameraModel,
-        rect_from_cam: &Rotation3<f64>,
-        p: RectPoint,
-    ) -> Option<PixelPoint> {
-        let ray = rect_from_cam.inverse() * Vector3::new(p.x, p.y, self.focal_px);
-        camera.project(&Point3::from(ray))
-    }
-
-    /// Where a rectified point lies in the raw left image; `None` behind the camera.
-    pub fn rect_to_left(&self, p: RectPoint) -> Option<PixelPoint> {
-        self.rect_to_camera(&self.left, &self.rect_from_left, p)
-    }
-
-    pub fn rect_to_right(&self, p: RectPoint) -> Option<PixelPoint> {
-        self.rect_to_camera(&self.right, &self.rect_from_right, p)
-    }
-
-    pub fn left_to_rect(&self, p: PixelPoint) -> Option<RectPoint> {
-        self.to_rect(&self.left, &self.rect_from_left, p)
-    }
-
-    pub fn right_to_rect(&self, p: PixelPoint) -> Option<RectPoint> {
-        self.to_rect(&self.right, &self.rect_from_right, p)
-    }
-
-    /// Depth from disparity (method eqs. 10-12) in the virtual pair, returned in the rig frame.
-    /// `None` for a non-positive disparity (a point at or beyond infinity).
-    pub fn triangulate(&self, left: RectPoint, right: RectPoint) -> Option<Triangulated> {
-        let disparity = left.x - right.x;
-        if disparity <= 0.0 {
-            return None;
-        }
-        let depth_m = self.focal_px * self.baseline_m / disparity;
-        // The method's origin is half-way between the cameras; the rig origin is the left camera.
-        let point_in_rect = Point3::new(
-            depth_m * (left.x + right.x) / (2.0 * self.focal_px) + self.baseline_m / 2.0,
-            depth_m * (left.y + right.y) / (2.0 * self.focal_px),
-            depth_m,
-        );
-        Some(Triangulated {
-            point_in_rig: self.rect_from_left.inverse() * point_in_rect,
-            depth_m,
-        })
-    }
-
-    /// Standard deviation of depth caused by a disparity error of `disparity_sigma_px`.
-    pub fn depth_sigma_m(&self, depth_m: f64, disparity_sigma_px: f64) -> f64 {
-        depth_m * depth_m * disparity_sigma_px / (self.focal_px * self.baseline_m)
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct RectBox {
-    min_x: f64,
-    max_x: f64,
-    min_y: f64,
-    max_y: f64,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Triangulated {
-    pub point_in_rig: Point3<f64>,
-    /// Depth along the rectified viewing direction.
-    pub depth_m: f64,
 }
 
 /// Parses a row-major 4x4 rigid transform (`world_from_rig`), checking that it is rigid.
@@ -576,6 +272,7 @@ pub fn isometry_from_row_major(
     ))
 }
 
+/// A pose as the 16 numbers of its 4x4 matrix, row-major.
 pub fn isometry_to_row_major(pose: &Isometry3<f64>) -> [f64; 16] {
     let m = pose.to_homogeneous();
     let mut out = [0.0; 16];
