@@ -7,6 +7,10 @@
 # fastest of 3 passes; mrptv: the fastest of 3 runs). Prints stereo pairs/s and the ratio.
 #
 #   bash benches/peers.sh [FRAMES]        (default 60 frames per density)
+#
+# With MRPTV_PREVIOUS=PATH (another build of mrptv, e.g. the previous release), that build's
+# whole pipeline is measured on the same recordings in the same run, two cores, with its ratio:
+# how a change moved the speed, apart from the machine's drift between runs.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 frames="${1:-60}"
@@ -24,34 +28,47 @@ fi
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 
-# The fastest of 3 runs of `process` ($1: RAYON_NUM_THREADS), pairs/s inside the pipeline.
+previous="${MRPTV_PREVIOUS:-}"
+[ -z "$previous" ] || [ -x "$previous" ] || { echo "MRPTV_PREVIOUS=$previous is not an executable" >&2; exit 1; }
+
+# The fastest of 3 runs of `process` ($1: RAYON_NUM_THREADS; $2: the binary, default this
+# build), pairs/s inside the pipeline.
 mrptv_rate() {
-  local best=0 rate
+  local best=0 rate bin="${2:-$mrptv}"
   for _ in 1 2 3; do
     # The run's summary is on stderr.
-    rate="$(RAYON_NUM_THREADS="$1" "$mrptv" process "$rec" --out "$work/t.csv" 2>&1 >/dev/null \
+    rate="$(RAYON_NUM_THREADS="$1" "$bin" process "$rec" --out "$work/t.csv" 2>&1 >/dev/null \
       | sed -n 's/.*; pipeline \([0-9.]*\) frames\/s.*/\1/p')"
-    [ -n "$rate" ] || { echo "mrptv process $rec failed" >&2; exit 1; }
+    [ -n "$rate" ] || { echo "$bin process $rec failed" >&2; exit 1; }
     best="$(python3 -c "print(max($best, $rate))")"
   done
   echo "$best"
 }
 
 echo "mrptv $("$mrptv" --version | cut -d' ' -f2), OpenCV $("$venv/bin/python" -c 'import cv2; print(cv2.__version__)'), $(nproc) cores, seeded scene 640x480, $frames frames per density"
-printf "%-9s %-8s %-9s %-14s %-14s %-14s %-10s %-10s\n" particles ppp touching "OpenCV det" "mrptv 1 core" "mrptv 2 cores" "ratio 1" "ratio 2"
+header=(particles ppp touching "OpenCV det" "mrptv 1 core" "mrptv 2 cores" "ratio 1" "ratio 2")
+[ -z "$previous" ] || header+=("previous 2 cores" "ratio 2 prev")
+printf "%-9s %-8s %-9s %-14s %-14s %-14s %-10s %-10s" "${header[@]:0:8}"
+[ -z "$previous" ] || printf " %-16s %-12s" "${header[@]:8}"
+echo
 for particles in 50 200 1000 1540 3070; do
   rec="$work/seeded-$particles"
-  scene="$("$mrptv" synth seeded "$rec" --frames "$frames" --particles "$particles" | head -1)"
+  scene="$("$mrptv" synth seeded "$rec" --frames "$frames" --particles "$particles" | sed -n 1p)"
   ppp="$(sed -n 's/.*; \([0-9.]*\) particles per pixel.*/\1/p' <<<"$scene")"
   touching="$(sed -n 's/.*, \([0-9]*\) % of particle images touching.*/\1/p' <<<"$scene")"
   read -r opencv _ < <("$venv/bin/python" benches/peers.py "$rec" 3)
   one="$(mrptv_rate 1)"
   two="$(mrptv_rate 2)"
-  python3 - "$particles" "$ppp" "$touching" "$opencv" "$one" "$two" <<'PY'
+  prev=""
+  [ -z "$previous" ] || prev="$(mrptv_rate 2 "$previous")"
+  python3 - "$particles" "$ppp" "$touching" "$opencv" "$one" "$two" "$prev" <<'PY'
 import sys
-n, ppp, touching, opencv, one, two = sys.argv[1:]
+n, ppp, touching, opencv, one, two, prev = sys.argv[1:]
 opencv, one, two = float(opencv), float(one), float(two)
-print(f"{n:<9} {ppp:<8} {touching + ' %':<9} {opencv:<14.1f} {one:<14.1f} {two:<14.1f} {one / opencv:<10.2f} {two / opencv:<10.2f}")
+line = f"{n:<9} {ppp:<8} {touching + ' %':<9} {opencv:<14.1f} {one:<14.1f} {two:<14.1f} {one / opencv:<10.2f} {two / opencv:<10.2f}"
+if prev:
+    line += f" {float(prev):<16.1f} {float(prev) / opencv:<12.2f}"
+print(line)
 PY
 done
 echo "(pairs/s; ratio = mrptv's whole pipeline / OpenCV's detection alone)"

@@ -1,5 +1,5 @@
 //! The whole pipeline on synthetic scenes with known truth, against stated tolerances.
-//! Each bound is the acceptance bound; the figures actually reached are in README.md.
+//! Each bound is the acceptance bound; the figures actually reached are in docs/accuracy.md, written by scripts/measure.
 
 use mrptv::offline::SyntheticRun;
 use mrptv_engine::eval::{evaluate, EvalOptions, Report};
@@ -230,7 +230,7 @@ fn ignoring_the_head_pose_corrupts_world_velocities() {
 
 #[test]
 fn hard_scenarios_run_and_stay_sane() {
-    // No acceptance bound: these report figures (README). They must still produce mostly
+    // No acceptance bound: these report figures (docs/accuracy.md). They must still produce mostly
     // correct vectors.
     for scenario in [
         Scenario::Turbulence,
@@ -262,7 +262,7 @@ fn assert_sane(scenario: Scenario, r: &Report) {
 
 /// Dense seeding (`seeded`: 2.5-6 px particles at 0.005 particles per pixel, a quarter to a
 /// third of their images touching). In uniform flow the error and ghost bounds hold (see
-/// below), in turbulence not yet (README): both must run and give mostly correct vectors. Truth is associated within 5 mm, not 2 cm: particles are
+/// below), in turbulence not yet (docs/accuracy.md): both must run and give mostly correct vectors. Truth is associated within 5 mm, not 2 cm: particles are
 /// 3 cm apart in the slab, so at 2 cm a wrong pair lands near some particle and its error
 /// counts against a particle it never was.
 #[test]

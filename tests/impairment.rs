@@ -2,7 +2,7 @@
 //! limit below the stream's bit rate with `tc tbf` between two network namespaces. What must
 //! hold on any machine is asserted (the session stays up, every frame sent is answered, drops
 //! are counted and reported, the stream recovers with the link, the server's queue never grows
-//! past its bound); the latencies and drops measured are printed, and the README quotes them.
+//! past its bound); the latencies and drops measured are printed, and docs/live-service.md tabulates them (scripts/measure live).
 
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

@@ -58,7 +58,7 @@ fn assert_calibrated(name: &str, c: &Coverage) {
 }
 
 /// Positions state their errors too: on the four scenes 88-95 % of them lie within 2
-/// sigma per component (README); bounded below with a margin, so a regression shows.
+/// sigma per component (docs/accuracy.md); bounded below with a margin, so a regression shows.
 fn assert_positions_covered(name: &str, c: &Coverage) {
     let p = &c.position_within_2_sigma;
     for (component, fraction) in [("x", p.x), ("y", p.y), ("z", p.z)] {
@@ -107,7 +107,7 @@ fn velocity_uncertainties_are_calibrated_in_turbulence() {
 
 /// Scenes the uncertainty model was not tuned on hold the band too: a lab flume with sensor
 /// noise, a cluttered room, a toed-in lab rig, particles crossing the image in 6-10 frames, and
-/// a densely seeded tank, still and in turbulence. (Outside it, and stated in the README: the
+/// a densely seeded tank, still and in turbulence. (Outside it, and stated in docs/accuracy.md: the
 /// wind tunnel's u and v at 88 %, the long-lens rig's v and w at 87-88 %, the vortex's axial w
 /// at 98.5 %.)
 #[test]

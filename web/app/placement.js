@@ -1,4 +1,4 @@
-// Where the measured volume goes in the observer's space (README: "Where the flow appears").
+// Where the measured volume goes in the observer's space (docs/live-service.md: "Where the flow appears").
 // A point p of the session's world (WebXR convention: x right, y up, -z forward, metres) is drawn
 // at  anchor + scale * (p - centre):  no rotation, so "up" and "forward" stay the wearer's.
 // centre and the robust extent come from the first batches and then stay fixed (press Recentre
