@@ -18,15 +18,15 @@ use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::tungstenite::http::header::{HeaderValue, AUTHORIZATION};
 use tokio_tungstenite::tungstenite::Message;
 
-use mrptv_engine::geometry::StereoRig;
 use crate::protocol::{
     decode_batch, encode_frame, BatchKind, Convention, Counters, DecodedBatch, Encoding, ErrorCode,
     FrameMessage, HeadsetMessage, Hello, ImageFormat, ServerMessage, PROTOCOL_VERSION,
 };
-use mrptv_engine::PipelineConfig;
 use crate::recording::{read_gray_png, Recording, RecordingError};
-use mrptv_engine::synth::{ScenarioSpec, Synthesizer};
 use crate::tables;
+use mrptv_engine::geometry::StereoRig;
+use mrptv_engine::synth::{ScenarioSpec, Synthesizer};
+use mrptv_engine::PipelineConfig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {

@@ -5,13 +5,13 @@
 
 use std::path::Path;
 
-use mrptv_engine::geometry::StereoRig;
 use crate::protocol::{
     decode_batch, decode_frame, encode_frame, parse_text, HeadsetMessage, ViewerMessage,
     HEADSET_TYPES, VIEWER_TYPES,
 };
-use mrptv_engine::Pipeline;
 use crate::recording::{decode_gray_png, parse_frames, parse_rig};
+use mrptv_engine::geometry::StereoRig;
+use mrptv_engine::Pipeline;
 
 /// `mrptv serve`'s default `--max-image-size`: larger hellos never reach the pipeline.
 const MAX_IMAGE_SIDE: u32 = 4096;

@@ -20,8 +20,8 @@ use thiserror::Error;
 use tokio_tungstenite::tungstenite::Message;
 
 use crate::client::{self, ClientError, FrameSource, Rate, ReplayOptions, SourceFrame};
-use mrptv_engine::geometry::StereoRig;
 use crate::protocol::Encoding;
+use mrptv_engine::geometry::StereoRig;
 use mrptv_engine::synth::{Scenario, ScenarioSpec, Synthesizer};
 
 #[derive(Debug, Clone)]

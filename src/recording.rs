@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-use mrptv_engine::geometry::{isometry_from_row_major, CalibrationError, RigFile, StereoRig};
 use crate::tables::{self, TableError};
+use mrptv_engine::geometry::{isometry_from_row_major, CalibrationError, RigFile, StereoRig};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RecordingError {

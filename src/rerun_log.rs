@@ -30,8 +30,8 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Point3};
 use rerun::RecordingStream;
 
-use mrptv_engine::geometry::{CameraModel, StereoRig};
 use mrptv_engine::field::CellSummary;
+use mrptv_engine::geometry::{CameraModel, StereoRig};
 use mrptv_engine::{Detection, FrameOutput, FrameStats, MatchedPoint, VelocityVector};
 
 /// Where a run is logged.

@@ -8,11 +8,11 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Point3, Vector3};
 
-use mrptv_engine::geometry::isometry_to_row_major;
-use mrptv_engine::field::{CellSummary, FIELD_COLUMNS};
 pub use mrptv_engine::eval::TrackRow;
-use mrptv_engine::{MatchedPoint, VelocityVector};
+use mrptv_engine::field::{CellSummary, FIELD_COLUMNS};
+use mrptv_engine::geometry::isometry_to_row_major;
 use mrptv_engine::synth::TruthRow;
+use mrptv_engine::{MatchedPoint, VelocityVector};
 
 pub const FRAMES_HEADER: &str = "index,t_s";
 pub const TRUTH_HEADER: &str = "frame,t_s,pid,x,y,z,u,v,w";

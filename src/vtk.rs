@@ -7,8 +7,8 @@ use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
 
-use mrptv_engine::field::CellSummary;
 use crate::tables::TrackRow;
+use mrptv_engine::field::CellSummary;
 
 /// Which VTK file a path asks for, by its extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,10 +1,10 @@
 //! The whole pipeline on synthetic scenes with known truth, against stated tolerances.
 //! Each bound is the acceptance bound; the figures actually reached are in README.md.
 
-use mrptv_engine::eval::{evaluate, EvalOptions, Report};
 use mrptv::offline::run_in_memory;
-use mrptv_engine::PipelineConfig;
+use mrptv_engine::eval::{evaluate, EvalOptions, Report};
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 
 fn run(scenario: Scenario, config: Option<PipelineConfig>, seed: u64) -> Report {
     let particles = ScenarioSpec::new(scenario).default_particles;
@@ -193,10 +193,10 @@ fn mrptv_improvements_beat_the_published_method_on_the_uniform_case() {
 fn ignoring_the_head_pose_corrupts_world_velocities() {
     // The same moving-head frames processed as if the head were still: the wearer's motion ends up
     // in the velocities, so the pose handling is what makes the bounds above hold.
-    use mrptv_engine::eval::evaluate;
-    use mrptv_engine::{ImageView, Pipeline, StereoFrame};
-    use mrptv_engine::synth::Synthesizer;
     use mrptv::tables::TrackRow;
+    use mrptv_engine::eval::evaluate;
+    use mrptv_engine::synth::Synthesizer;
+    use mrptv_engine::{ImageView, Pipeline, StereoFrame};
     let spec = ScenarioSpec::new(Scenario::MovingHead);
     let mut synth = Synthesizer::new(spec.clone(), spec.default_particles, 1);
     let mut pipeline = Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");

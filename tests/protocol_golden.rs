@@ -12,9 +12,9 @@ use mrptv::protocol::{
     ServerMessage, SessionDescription, SessionInfo, ViewerMessage, FIELD_COLUMNS, HEADSET_TYPES,
     PROTOCOL_VERSION, VIEWER_TYPES,
 };
-use mrptv_engine::{PipelineConfig, VelocityVector};
 use mrptv::recording::encode_gray_png;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::{PipelineConfig, VelocityVector};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
 fn counters() -> Counters {

@@ -9,11 +9,11 @@ use std::time::Duration;
 
 use mrptv::client::{self, Rate, RecordingSource, ReplayOptions};
 use mrptv::offline;
-use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{RerunOptions, RerunSink};
 use mrptv::server::{self, ServerOptions};
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 
 mod common;
 use common::assert_rrd_verified;

@@ -12,11 +12,11 @@ use mrptv::protocol::{
     decode_batch, encode_frame, BatchKind, Convention, DecodedBatch, Encoding, ErrorCode,
     FrameMessage, ServerMessage,
 };
-use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::server::ServerOptions;
-use mrptv_engine::synth::Scenario;
 use mrptv::tables::{self, TrackRow};
+use mrptv_engine::synth::Scenario;
+use mrptv_engine::PipelineConfig;
 use tokio_tungstenite::tungstenite::Message;
 
 mod common;

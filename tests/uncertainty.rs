@@ -1,11 +1,11 @@
 //! Per-vector uncertainties against synthetic truth, and the mean-flow field binned from the
 //! vectors, on the default config.
 
-use mrptv_engine::eval::{Coverage, EvalOptions, Xyz};
 use mrptv::offline::{run_in_memory, InMemoryRun};
+use mrptv_engine::eval::{Coverage, EvalOptions, Xyz};
 use mrptv_engine::field::{default_cell_m, FieldGrid, FieldSample};
-use mrptv_engine::PipelineConfig;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 
 fn run(scenario: Scenario, seed: u64) -> (ScenarioSpec, InMemoryRun) {
     let spec = ScenarioSpec::new(scenario);

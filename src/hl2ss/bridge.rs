@@ -14,13 +14,13 @@ use nalgebra::Isometry3;
 use serde::Serialize;
 
 use crate::client::{ClientError, FrameSource, SourceFrame};
-use mrptv_engine::geometry::StereoRig;
 use crate::hl2ss::{
     decode_header, fit_lens, isometry_from_row_vector, stereo_rig, LensFit, Pairer, StreamConfig,
     VlcCalibration, VlcCodec, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES,
     TICKS_PER_SECOND, VLC_HEIGHT, VLC_WIDTH,
 };
 use crate::video::H264Decoder;
+use mrptv_engine::geometry::StereoRig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {

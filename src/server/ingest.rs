@@ -15,16 +15,16 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
 use super::{unix_ms, FieldOptions, Hub, HubEvent, PublishedBatch, PublishedField, SessionShared};
-use mrptv_engine::geometry::StereoRig;
 use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
     Hello, ProtocolError, ServerMessage, SessionDescription, HEADSET_TYPES, PROTOCOL_VERSION,
 };
-use mrptv_engine::field::StreamField;
-use mrptv_engine::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 use crate::recording::{FrameEntry, RecordingWriter};
 use crate::rerun_log::{FrameLog, RerunLogger, RerunSink};
+use mrptv_engine::field::StreamField;
+use mrptv_engine::geometry::StereoRig;
+use mrptv_engine::{ImageView, Pipeline, PipelineConfig, PipelineError, StereoFrame};
 
 /// A frame accepted from the socket, waiting for the pipeline.
 struct QueuedFrame {

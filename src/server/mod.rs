@@ -47,9 +47,9 @@ use crate::protocol::{
     Batch, Convention, Counters, ErrorCode, FieldMessage, ServerMessage, SessionDescription,
     SessionInfo, PROTOCOL_VERSION,
 };
+use crate::rerun_log::RerunOptions;
 use mrptv_engine::field::{CellSummary, FieldGrid};
 use mrptv_engine::PipelineConfig;
-use crate::rerun_log::RerunOptions;
 
 /// Everything `mrptv serve` can be told; `Default` gives the documented defaults.
 #[derive(Debug, Clone)]

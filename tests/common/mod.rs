@@ -12,10 +12,10 @@ use mrptv::offline;
 use mrptv::protocol::{
     decode_batch, encode_frame, DecodedBatch, Encoding, ErrorCode, FrameMessage, ServerMessage,
 };
-use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::server::{self, ServerOptions};
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
+use mrptv_engine::PipelineConfig;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tokio_tungstenite::tungstenite::Message;
