@@ -6,15 +6,15 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use mrptv::offline::{self, ProcessSinks, Sink};
-use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
-use mrptv_engine::PipelineConfig;
 use mrptv::recording::Recording;
 use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::tables::{self, TrackRow};
 use mrptv::vtk::{self, VtkFormat};
+use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
+use mrptv_engine::PipelineConfig;
 
-use super::args::DepthRange;
-use super::{create_output, method_config, progress_bar, runtime, termination};
+use super::args::{ConfigChoices, ConfigFile, RerunArgs};
+use super::{create_output, progress_bar, runtime, termination};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -35,23 +35,12 @@ pub struct Args {
     /// Also write every stereo-matched particle: frame,t_s,x,y,z,xl,yl,xr,yr.
     #[arg(long)]
     points: Option<PathBuf>,
-    /// TOML config [default: REC/mrptv.toml if present, else built-in defaults].
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Use the published method's choices (no mrptv improvements) as the base config.
-    #[arg(long)]
-    method: bool,
-    /// The measurement volume's depths, metres along the cameras' common viewing direction:
-    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
-    #[arg(long, value_name = "NEAR..FAR")]
-    depth_range: Option<DepthRange>,
-    /// Log the run to Rerun: file:RUN.rrd, connect (a viewer on this machine) or
-    /// connect:URL. Repeat for several.
-    #[arg(long, value_name = "SINK")]
-    rerun: Vec<RerunSink>,
-    /// With --rerun: log the camera images every N frames (0: never).
-    #[arg(long, default_value_t = 10, value_name = "N")]
-    rerun_images_every: u64,
+    #[command(flatten)]
+    config: ConfigFile,
+    #[command(flatten)]
+    choices: ConfigChoices,
+    #[command(flatten)]
+    rerun: RerunArgs,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -62,14 +51,14 @@ pub fn run(args: Args) -> Result<()> {
         field_cell,
         points,
         config,
-        method,
-        depth_range,
-        mut rerun,
-        rerun_images_every,
+        choices,
+        rerun: RerunArgs {
+            mut rerun,
+            rerun_images_every,
+        },
     } = args;
     let recording = Recording::open(&rec)?;
-    let mut config = load_config(&rec, config.as_deref(), method)?;
-    DepthRange::apply(depth_range, &mut config);
+    let config = choices.apply(load_config(&rec, &config)?);
     if let Some(cell) = field_cell {
         FieldGrid::new(cell, None)?;
     }
@@ -220,19 +209,15 @@ fn report_rerun(logger: RerunLogger, sinks: &[RerunSink]) {
     );
 }
 
-fn load_config(rec: &Path, explicit: Option<&Path>, method: bool) -> Result<PipelineConfig> {
-    let suggested = rec.join("mrptv.toml");
-    let config = match explicit {
-        Some(path) => mrptv::config::load(path)?,
-        None if suggested.is_file() => {
-            eprintln!("using {}", suggested.display());
-            mrptv::config::load(&suggested)?
+/// The config `--config` names, else the recording's own (said on stderr), else the defaults.
+fn load_config(rec: &Path, file: &ConfigFile) -> Result<PipelineConfig> {
+    match file.or_in_recording(rec) {
+        Some(path) => {
+            if file.config.is_none() {
+                eprintln!("using {}", path.display());
+            }
+            Ok(mrptv::config::load(&path)?)
         }
-        None => PipelineConfig::default(),
-    };
-    Ok(if method {
-        method_config(&config)
-    } else {
-        config
-    })
+        None => Ok(PipelineConfig::default()),
+    }
 }
