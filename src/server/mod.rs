@@ -443,46 +443,19 @@ pub async fn run(
 ) -> std::io::Result<ShutdownReport> {
     let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
     let drain_timeout = options.drain_timeout;
-    let tls = options
-        .tls
-        .clone()
-        .map(|config| (config, options.handshake_timeout));
-    let (max_connections, handshake_timeout, idle_timeout) = (
-        options.max_connections,
-        options.handshake_timeout,
-        options.idle_timeout,
-    );
     let hub = Arc::new(Hub::new(options, shutdown_rx));
-    let app = router(Arc::clone(&hub));
     let signal = async move {
         shutdown.await;
         tracing::info!("shutting down: closing sessions");
         let _ = shutdown_tx.send(true);
     };
-    match tls {
-        Some((config, handshake_timeout)) => {
+    match hub.options.tls.clone() {
+        Some(config) => {
+            let handshake_timeout = hub.options.handshake_timeout;
             let listener = tls_listener::TlsListener::new(listener, config, handshake_timeout)?;
-            let listener = guard::GuardedListener::new(
-                listener,
-                max_connections,
-                handshake_timeout,
-                idle_timeout,
-            );
-            axum::serve(listener, app)
-                .with_graceful_shutdown(signal)
-                .await?;
+            serve_guarded(listener, &hub, signal).await?;
         }
-        None => {
-            let listener = guard::GuardedListener::new(
-                listener.tap_io(|tcp| set_nodelay(tcp)),
-                max_connections,
-                handshake_timeout,
-                idle_timeout,
-            );
-            axum::serve(listener, app)
-                .with_graceful_shutdown(signal)
-                .await?;
-        }
+        None => serve_guarded(listener.tap_io(|tcp| set_nodelay(tcp)), &hub, signal).await?,
     }
     // Upgraded WebSocket connections outlive axum's own connection tracking: wait for them.
     let drained = tokio::time::timeout(
@@ -511,6 +484,29 @@ pub async fn run(
     })
 }
 
+/// Serves the hub's routes on `listener` until `signal`, every connection held to the guard's
+/// limits.
+async fn serve_guarded<L>(
+    listener: L,
+    hub: &Arc<Hub>,
+    signal: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()>
+where
+    L: axum::serve::Listener,
+    L::Addr: std::fmt::Debug,
+{
+    let options = &hub.options;
+    let listener = guard::GuardedListener::new(
+        listener,
+        options.max_connections,
+        options.handshake_timeout,
+        options.idle_timeout,
+    );
+    axum::serve(listener, router(Arc::clone(hub)))
+        .with_graceful_shutdown(signal)
+        .await
+}
+
 /// Largest message a viewer may send.
 const VIEWER_MESSAGE_BYTES: usize = 64 << 10;
 
@@ -521,8 +517,18 @@ fn router(hub: Arc<Hub>) -> Router {
         .route("/vendor/{*path}", get(web::vendor))
         .route("/healthz", get(healthz))
         .route("/v1/sessions", get(sessions))
-        .route("/v1/ingest", get(ingest_upgrade))
-        .route("/v1/watch", get(watch_upgrade))
+        .route(
+            "/v1/ingest",
+            get(|ws, headers, Query(query), State(hub)| {
+                upgrade(access::Role::Ingest, ws, headers, query, hub)
+            }),
+        )
+        .route(
+            "/v1/watch",
+            get(|ws, headers, Query(query), State(hub)| {
+                upgrade(access::Role::Watch, ws, headers, query, hub)
+            }),
+        )
         .layer(axum::middleware::map_response(one_request_per_connection))
         .with_state(hub)
 }
@@ -573,34 +579,28 @@ fn refusal(
     )
 }
 
-async fn ingest_upgrade(
+/// A headset's (`Ingest`) or a viewer's (`Watch`) WebSocket: refused without the role's secret,
+/// else upgraded with the role's message limit and served by the role's task.
+async fn upgrade(
+    role: access::Role,
     ws: WebSocketUpgrade,
     headers: HeaderMap,
-    Query(query): Query<TokenQuery>,
-    State(hub): State<Arc<Hub>>,
+    query: TokenQuery,
+    hub: Arc<Hub>,
 ) -> Response {
-    if let Some(refused) = refusal(&hub, access::Role::Ingest, &headers, &query) {
+    if let Some(refused) = refusal(&hub, role, &headers, &query) {
         return refused;
     }
-    let max = hub.options.max_message_bytes;
-    ws.max_message_size(max)
-        .max_frame_size(max)
-        .on_upgrade(move |socket| ingest::serve_headset(socket, hub))
-}
-
-async fn watch_upgrade(
-    ws: WebSocketUpgrade,
-    headers: HeaderMap,
-    Query(query): Query<TokenQuery>,
-    State(hub): State<Arc<Hub>>,
-) -> Response {
-    if let Some(refused) = refusal(&hub, access::Role::Watch, &headers, &query) {
-        return refused;
+    let max = match role {
+        access::Role::Ingest => hub.options.max_message_bytes,
+        // Viewers send small JSON requests: a frame must not buffer more than a message may hold.
+        access::Role::Watch => VIEWER_MESSAGE_BYTES,
+    };
+    let ws = ws.max_message_size(max).max_frame_size(max);
+    match role {
+        access::Role::Ingest => ws.on_upgrade(move |socket| ingest::serve_headset(socket, hub)),
+        access::Role::Watch => ws.on_upgrade(move |socket| watch::serve_viewer(socket, hub)),
     }
-    // Viewers send small JSON requests: a frame must not buffer more than a message may hold.
-    ws.max_message_size(VIEWER_MESSAGE_BYTES)
-        .max_frame_size(VIEWER_MESSAGE_BYTES)
-        .on_upgrade(move |socket| watch::serve_viewer(socket, hub))
 }
 
 #[derive(Serialize)]
