@@ -341,24 +341,19 @@ impl Hl2ssSource {
             ),
             ("right", endpoints.right_port, |f| (Side::Right, f)),
         ] {
+            let io = |error| BridgeError::Io {
+                camera,
+                addr: format!("{}:{port}", endpoints.host),
+                error,
+            };
             let mut stream = endpoints.connect(camera, port)?;
             let _ = stream.set_read_timeout(Some(STREAM_SILENCE));
-            stream
-                .write_all(&config.encode())
-                .map_err(|error| BridgeError::Io {
-                    camera,
-                    addr: format!("{}:{port}", endpoints.host),
-                    error,
-                })?;
+            stream.write_all(&config.encode()).map_err(io)?;
             let tx = tx.clone();
             std::thread::Builder::new()
                 .name(format!("hl2ss-{camera}"))
                 .spawn(move || read_stream(stream, camera, codec, side, tx))
-                .map_err(|error| BridgeError::Io {
-                    camera,
-                    addr: format!("{}:{port}", endpoints.host),
-                    error,
-                })?;
+                .map_err(io)?;
         }
         Ok(Self {
             rig,

@@ -40,6 +40,14 @@ pub fn message(id: u32, data: &[u8]) -> Vec<u8> {
     m
 }
 
+/// Shows (`true`) or hides the primitive `key`.
+fn set_active(key: u32, active: bool) -> Vec<u8> {
+    message(
+        SET_ACTIVE,
+        &[key.to_le_bytes(), u32::from(active).to_le_bytes()].concat(),
+    )
+}
+
 fn words(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
@@ -160,10 +168,7 @@ impl Painter {
         // Hidden until there is something to show (whatever the plugin's default).
         let mut hide = vec![message(BEGIN_DISPLAY_LIST, &[])];
         for &key in &painter.keys {
-            hide.push(message(
-                SET_ACTIVE,
-                &[key.to_le_bytes(), 0u32.to_le_bytes()].concat(),
-            ));
+            hide.push(set_active(key, false));
         }
         hide.push(message(END_DISPLAY_LIST, &[]));
         painter.send(&hide)?;
@@ -261,17 +266,11 @@ impl Painter {
                 &[key.to_le_bytes().to_vec(), words(&rgba)].concat(),
             ));
             if i >= self.shown {
-                list.push(message(
-                    SET_ACTIVE,
-                    &[key.to_le_bytes(), 1u32.to_le_bytes()].concat(),
-                ));
+                list.push(set_active(key, true));
             }
         }
         for &key in &self.keys[n..self.shown.max(n)] {
-            list.push(message(
-                SET_ACTIVE,
-                &[key.to_le_bytes(), 0u32.to_le_bytes()].concat(),
-            ));
+            list.push(set_active(key, false));
         }
         list.push(message(END_DISPLAY_LIST, &[]));
         let answers = self.send(&list)?;

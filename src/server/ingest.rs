@@ -14,7 +14,9 @@ use nalgebra::Isometry3;
 use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
-use super::{unix_ms, FieldOptions, Hub, HubEvent, PublishedBatch, PublishedField, SessionShared};
+use super::{
+    unix_ms, FieldOptions, Hub, HubEvent, Keepalive, PublishedBatch, PublishedField, SessionShared,
+};
 use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
@@ -146,11 +148,7 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
     let mut shutdown = hub.shutdown.clone();
     let mut status = tokio::time::interval(hub.options.status_interval);
     status.tick().await;
-    let idle_timeout = hub.options.idle_timeout;
-    let mut keepalive = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
-    keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    keepalive.tick().await;
-    let mut last_heard = Instant::now();
+    let mut keepalive = Keepalive::start(hub.options.idle_timeout).await;
     let mut hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
     let mut conn = Connection {
         hub: Arc::clone(&hub),
@@ -164,7 +162,7 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
         loop {
             tokio::select! {
                 message = stream.next() => {
-                    last_heard = Instant::now();
+                    keepalive.heard();
                     match message {
                         Some(Ok(Message::Text(text))) => {
                             if conn.on_text(text.as_str()).await {
@@ -198,9 +196,8 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                     break;
                 }
                 _ = status.tick() => conn.send_status(),
-                _ = keepalive.tick() => {
-                    if last_heard.elapsed() > idle_timeout {
-                        let reason = format!("idle: nothing received for {} s", idle_timeout.as_secs_f64());
+                due = keepalive.ping_due() => {
+                    if let Err(reason) = due {
                         tracing::info!("headset {reason}: disconnecting it");
                         conn.finish(Some(&reason)).await;
                         break;

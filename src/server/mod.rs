@@ -415,6 +415,46 @@ impl Hub {
     }
 }
 
+/// A WebSocket peer's liveness: a ping is due every third of the idle timeout, and a peer that
+/// has sent nothing (not even a pong) for the whole timeout is to be closed.
+pub(crate) struct Keepalive {
+    ticks: tokio::time::Interval,
+    idle_timeout: Duration,
+    last_heard: tokio::time::Instant,
+}
+
+impl Keepalive {
+    pub async fn start(idle_timeout: Duration) -> Self {
+        let mut ticks = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
+        ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        ticks.tick().await;
+        Self {
+            ticks,
+            idle_timeout,
+            last_heard: tokio::time::Instant::now(),
+        }
+    }
+
+    /// The peer sent something.
+    pub fn heard(&mut self) {
+        self.last_heard = tokio::time::Instant::now();
+    }
+
+    /// Resolves when the next ping is due; `Err` (the reason to close) once the peer has been
+    /// silent for the idle timeout.
+    pub async fn ping_due(&mut self) -> Result<(), String> {
+        self.ticks.tick().await;
+        if self.last_heard.elapsed() > self.idle_timeout {
+            Err(format!(
+                "idle: nothing received for {} s",
+                self.idle_timeout.as_secs_f64()
+            ))
+        } else {
+            Ok(())
+        }
+    }
+}
+
 /// Waits until `count` reads 0, re-checking whenever `changed` is notified.
 async fn until_zero(count: &AtomicUsize, changed: &Notify) {
     loop {
