@@ -192,7 +192,8 @@ async fn serve(
         tokio::spawn(async move {
             let source = SyntheticSource::new(spec, 1, None, encoding);
             match client::replay(source, &options, stopped(stop), |_| {}).await {
-                // Logged under the binary's name, as before the CLI had modules.
+                // The target is the binary's name: log filters and readers need not know the
+                // CLI's module layout.
                 Ok(r) => {
                     tracing::info!(target: "mrptv", frames = r.frames_sent, "demo headset stopped")
                 }

@@ -64,8 +64,8 @@ pub const OPTION_TICKS_OFFSET_CONSTANT: u64 = 0xFFFF_FFFF_FFFF_FFFE;
 /// stamps raw host ticks: poses 12.5 ms late.
 pub const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
 pub const TICKS_OFFSET_CONSTANT: i64 = -125_000;
-/// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and today's
-/// timestamp options both date from it.
+/// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and the timestamp
+/// options the bridge sets both date from it.
 pub const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
 /// QPC ticks (100 ns) per second.
 pub const TICKS_PER_SECOND: f64 = 1e7;
