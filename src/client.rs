@@ -62,8 +62,6 @@ pub trait FrameSource: Send + 'static {
     fn rig(&self) -> &StereoRig;
     /// `None` at the end.
     fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>>;
-    /// Frames in all, when known.
-    fn frame_count(&self) -> Option<usize>;
     /// The next frame's `t_s`, when known without producing it.
     fn peek_t_s(&self) -> Option<f64> {
         None
@@ -123,10 +121,6 @@ impl FrameSource for RecordingSource {
                 right: read(self.recording.right_path(entry.index))?,
             })
         })())
-    }
-
-    fn frame_count(&self) -> Option<usize> {
-        Some(self.recording.frames.len())
     }
 
     fn peek_t_s(&self) -> Option<f64> {
@@ -210,10 +204,6 @@ impl FrameSource for SyntheticSource {
                 right: encode(f.right)?,
             })
         })())
-    }
-
-    fn frame_count(&self) -> Option<usize> {
-        self.laps.map(|laps| laps as usize * self.frames_per_lap)
     }
 }
 
@@ -420,7 +410,7 @@ fn spawn_source(
 
 /// A WebSocket upgrade request to `url`, with `Authorization: Bearer SECRET` when given (the
 /// server's ingest or watch secret).
-pub fn authorized_request(
+pub(crate) fn authorized_request(
     url: &str,
     secret: Option<&str>,
 ) -> Result<tokio_tungstenite::tungstenite::handshake::client::Request, ClientError> {

@@ -1,44 +1,33 @@
-//! # mrptv: mixed-reality particle tracking velocimetry
+//! # mrptv: the host service of mixed-reality particle tracking velocimetry
 //!
 //! Two synchronized grayscale cameras in, 3D particle velocities out (Chivers 2023, MR-PTV).
+//! The algorithm is [`mrptv_engine`] (pure and synchronous); this crate is everything around
+//! it: files, the live service, clients, logging.
 //!
 //! ## Layout
-//! - [`ptv`]: the algorithm, pure and synchronous (no I/O, no clock, no async). Stages in pipeline
-//!   order, each a function or a small state machine with named input and output types:
-//!   - [`ptv::detect`]: image -> [`ptv::Detection`] (centroid, diameter D, brightness B)
-//!   - rectification ([`geometry::Rectification`]): raw pixel -> virtual co-directional pixel
-//!   - [`ptv::link`]: per camera, frame n -> n+1, gives each feature a 2D track id (a new track's
-//!     first step from agreeing neighbours, or learnt from the images by neighbour consensus)
-//!   - [`ptv::stereo`]: left <-> right matching in the virtual pair
-//!   - triangulation ([`geometry::Rectification::triangulate`]): disparity -> point in the rig
-//!     frame, then `point_in_world = world_from_rig * point_in_rig`
-//!   - [`ptv::kinematics`]: moving least squares over +-M frames -> velocity (window and order
-//!     chosen per track and component from its residuals, `fit_adaptive`)
-//!   - [`ptv::Pipeline`] owns every stage's state; `push(&StereoFrame) -> FrameOutput`.
-//!   - [`ptv::field`]: vectors binned on a world-anchored grid (the mean-flow field).
-//! - [`geometry`]: `rig.json` calibration, lens model, rectification, poses.
-//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
-//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
-//!   (`mrptv hl2ss`) turns its streams into a headset session; [`hl2ss::holograms`] draws the
-//!   vectors back through its Unity plugin's message queue.
-//! - [`synth`]: synthetic scenarios with ground truth (the method's synthetic camera).
-//! - [`eval`]: scores velocities against truth.
 //! - [`recording`], [`tables`], [`config`]: the on-disk contract (recording directory, CSV files,
 //!   TOML config), read and written with errors that name file, line and field; [`vtk`] writes
 //!   tracks and fields for ParaView.
 //! - [`offline`]: the offline commands' work (`synth`, `process`, `demo`), shared by the binary
 //!   and the tests.
 //! - [`protocol`]: the live wire protocol (`protocol/README.md`): JSON control messages, binary
-//!   stereo frames and vector batches, coordinate conventions. Pure encode/decode; [`sparse`] is
-//!   the image encoding that fits a headset's Wi-Fi.
+//!   stereo frames and vector batches, coordinate conventions. Pure encode/decode; the `sparse`
+//!   image encoding (particles exact, background coarse) is what fits a headset's Wi-Fi.
 //! - [`server`]: `mrptv serve` (axum + tokio). A headset connection hands frames to its session's
 //!   pipeline thread through a bounded drop-oldest queue; the pipeline thread sends the headset
 //!   its [`protocol::Batch`]es, publishes them to viewers and feeds the session's recorder thread.
-//! - [`rerun_log`]: `--rerun` logging of runs and sessions to `.rrd` files, a viewer or a
-//!   served gRPC log, on a logging thread behind a bounded queue.
 //! - [`client`]: the reference headset client (`mrptv replay`, and `serve --demo`'s synthetic
 //!   headset).
+//! - [`hl2ss`]: the hl2ss HoloLens 2 streaming app's wire formats, its row-vector poses, frame
+//!   pairing, and a `rig.json` lens model fitted to its unprojection tables. [`hl2ss::bridge`]
+//!   (`mrptv hl2ss`) turns its streams into a headset session; [`hl2ss::holograms`] draws the
+//!   vectors back through its Unity plugin's message queue; [`video`] decodes its H.264.
+//! - [`rerun_log`]: `--rerun` logging of runs and sessions to `.rrd` files, a viewer or a
+//!   served gRPC log, on a logging thread behind a bounded queue.
+//! - [`tls`]: certificates and TLS configurations of `serve --tls` and of wss:// clients.
 //! - [`load`]: `mrptv load`, a bounded load test of a `serve` child process on loopback.
+//!
+//! What the binary, the tests and the fuzz targets use is `pub`; the rest is `pub(crate)`.
 //!
 //! Threads: a pipeline detects and links the left and right images of a frame in parallel, on
 //! rayon's pool (one thread per core, shared by all sessions; `RAYON_NUM_THREADS` limits it);
@@ -57,7 +46,7 @@ pub mod protocol;
 pub mod recording;
 pub mod rerun_log;
 pub mod server;
-pub mod sparse;
+mod sparse;
 pub mod tables;
 pub mod tls;
 pub mod video;

@@ -111,14 +111,10 @@ impl FrameSource for LoopedSource {
         self.next += 1;
         Some(Ok(out))
     }
-
-    fn frame_count(&self) -> Option<usize> {
-        self.limit.map(|l| l as usize)
-    }
 }
 
 /// Resident and peak memory of a process, MiB.
-pub fn process_memory_mib(pid: u32) -> Option<(f64, f64)> {
+pub(crate) fn process_memory_mib(pid: u32) -> Option<(f64, f64)> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let field = |name: &str| -> Option<f64> {
         let line = status.lines().find(|l| l.starts_with(name))?;

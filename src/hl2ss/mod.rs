@@ -30,30 +30,26 @@ use mrptv_engine::geometry::{isometry_from_row_major, CameraModel, Distortion, S
 
 pub const LEFT_FRONT_PORT: u16 = 3800;
 pub const RIGHT_FRONT_PORT: u16 = 3802;
-pub const VLC_WIDTH: u32 = 640;
-pub const VLC_HEIGHT: u32 = 480;
+pub(crate) const VLC_WIDTH: u32 = 640;
+pub(crate) const VLC_HEIGHT: u32 = 480;
 pub const VLC_PIXELS: usize = (VLC_WIDTH * VLC_HEIGHT) as usize;
 /// `sensor_ticks`, `exposure`, `gain`, reserved.
-pub const VLC_METADATA_BYTES: usize = 24;
-pub const POSE_BYTES: usize = 64;
+pub(crate) const VLC_METADATA_BYTES: usize = 24;
+pub(crate) const POSE_BYTES: usize = 64;
 /// Frame header: timestamp and payload size.
-pub const HEADER_BYTES: usize = 12;
+pub(crate) const HEADER_BYTES: usize = 12;
 /// uv2x, uv2y, extrinsics, mapx, mapy, K.
-pub const CALIBRATION_FLOATS: usize = 4 * VLC_PIXELS + 16 + 4;
-pub const PROFILE_RAW: u8 = 0xFF;
+pub(crate) const CALIBRATION_FLOATS: usize = 4 * VLC_PIXELS + 16 + 4;
+pub(crate) const PROFILE_RAW: u8 = 0xFF;
 /// hl2ss's `VideoProfile.H264_BASE`: constrained baseline, what OpenH264 decodes.
 pub const PROFILE_H264_BASE: u8 = 0;
-/// hl2ss's `VideoProfile.H265_MAIN`.
-pub const PROFILE_H265_MAIN: u8 = 3;
 /// hl2ss's client default GOP for encoded streams: one IDR (with its SPS and PPS) a second.
 pub const H264_GOP_FRAMES: u64 = 30;
-/// hl2ss's client default bitrate for an H.264 VLC stream: `640 * 480 * 30 * 12 / 75`.
-pub const H264_DEFAULT_BITRATE: u32 = 1_474_560;
-pub const LEVEL_DEFAULT: u8 = 0xFF;
+pub(crate) const LEVEL_DEFAULT: u8 = 0xFF;
 /// hl2ss's own default for raw VLC streams (the server refuses 0 even when raw).
-pub const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
+pub(crate) const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
 /// `CODECAPI_AVEncMPVGOPSize`, set to 1 by hl2ss's client for raw streams.
-pub const OPTION_GOP_SIZE: u64 = 10;
+pub(crate) const OPTION_GOP_SIZE: u64 = 10;
 /// `HL2SSAPI_VLCHostTicksOffsetExposure`: the server stamps a frame `host_ticks + factor *
 /// exposure / 100 + constant` (the factor a double's bits) and locates its pose at that time.
 pub const OPTION_TICKS_OFFSET_EXPOSURE: u64 = 0xFFFF_FFFF_FFFF_FFFF;
@@ -62,13 +58,13 @@ pub const OPTION_TICKS_OFFSET_CONSTANT: u64 = 0xFFFF_FFFF_FFFF_FFFE;
 /// What hl2ss's client sends since v1.0.33: host ticks run 12.5 ms after mid-exposure, so
 /// these stamp each frame (and locate its pose) at mid-exposure. Without them a current server
 /// stamps raw host ticks: poses 12.5 ms late.
-pub const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
-pub const TICKS_OFFSET_CONSTANT: i64 = -125_000;
+pub(crate) const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
+pub(crate) const TICKS_OFFSET_CONSTANT: i64 = -125_000;
 /// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and the timestamp
 /// options the bridge sets both date from it.
-pub const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
+pub(crate) const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
 /// QPC ticks (100 ns) per second.
-pub const TICKS_PER_SECOND: f64 = 1e7;
+pub(crate) const TICKS_PER_SECOND: f64 = 1e7;
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Hl2ssError {
@@ -114,11 +110,11 @@ pub enum StreamMode {
 /// The configuration a client sends on connecting.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct StreamConfig {
-    pub mode: StreamMode,
+    pub(crate) mode: StreamMode,
     /// Send every n-th frame.
-    pub divisor: u8,
+    pub(crate) divisor: u8,
     pub profile: u8,
-    pub level: u8,
+    pub(crate) level: u8,
     pub bitrate: u32,
     pub options: Vec<(u64, u64)>,
 }
@@ -154,14 +150,14 @@ impl StreamConfig {
         config
     }
 
-    pub fn calibration() -> Self {
+    pub(crate) fn calibration() -> Self {
         Self {
             mode: StreamMode::Calibration,
             ..Self::raw_with_poses()
         }
     }
 
-    pub fn encode(&self) -> Vec<u8> {
+    pub(crate) fn encode(&self) -> Vec<u8> {
         let mut b = vec![self.mode as u8];
         if self.mode == StreamMode::Calibration {
             return b;
@@ -252,7 +248,7 @@ pub struct VlcFrame {
 }
 
 /// `(timestamp, payload bytes)` of a frame header.
-pub fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
+pub(crate) fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
     let mut t = [0; 8];
     t.copy_from_slice(&h[..8]);
     (
@@ -263,7 +259,11 @@ pub fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
 
 impl VlcFrame {
     /// From a raw payload (pixels and trailer) and, in mode 1, the 64 pose bytes.
-    pub fn decode(timestamp: u64, payload: &[u8], pose: Option<&[u8]>) -> Result<Self, Hl2ssError> {
+    pub(crate) fn decode(
+        timestamp: u64,
+        payload: &[u8],
+        pose: Option<&[u8]>,
+    ) -> Result<Self, Hl2ssError> {
         if payload.len() == VLC_PIXELS {
             return Err(Hl2ssError::Frame(format!(
                 "payload of {VLC_PIXELS} bytes: a bare image without the 24-byte trailer, as hl2ss \
@@ -283,7 +283,7 @@ impl VlcFrame {
 
     /// From any payload (the image as the stream's codec sent it, then the 24-byte trailer),
     /// `image` turning the codec's bytes into 640x480 pixels.
-    pub fn decode_with(
+    pub(crate) fn decode_with(
         timestamp: u64,
         payload: &[u8],
         pose: Option<&[u8]>,
@@ -361,7 +361,10 @@ impl VlcFrame {
 }
 
 /// A column-vector isometry from a row-vector 4x4 (`p' = p * M`): the transpose, checked rigid.
-pub fn isometry_from_row_vector(field: &str, m: &[f32; 16]) -> Result<Isometry3<f64>, Hl2ssError> {
+pub(crate) fn isometry_from_row_vector(
+    field: &str,
+    m: &[f32; 16],
+) -> Result<Isometry3<f64>, Hl2ssError> {
     let row_vector = Matrix4::from_row_slice(&m.map(f64::from));
     let column = row_vector.transpose();
     let mut row_major = [0.0; 16];
@@ -385,18 +388,18 @@ pub fn row_vector_from_isometry(pose: &Isometry3<f64>) -> [f32; 16] {
 #[derive(Debug, Clone, PartialEq)]
 pub struct VlcCalibration {
     /// Per pixel, row-major (v * 640 + u): the point on the z = 1 plane seen at its centre.
-    pub uv2x: Vec<f32>,
-    pub uv2y: Vec<f32>,
+    pub(crate) uv2x: Vec<f32>,
+    pub(crate) uv2y: Vec<f32>,
     /// Row-vector rig node -> camera.
-    pub extrinsics: [f32; 16],
-    pub mapx: Vec<f32>,
-    pub mapy: Vec<f32>,
+    pub(crate) extrinsics: [f32; 16],
+    pub(crate) mapx: Vec<f32>,
+    pub(crate) mapy: Vec<f32>,
     /// fx, fy, cx, cy of hl2ss's virtual undistorted pinhole.
-    pub k: [f32; 4],
+    pub(crate) k: [f32; 4],
 }
 
 impl VlcCalibration {
-    pub fn decode(b: &[u8]) -> Result<Self, Hl2ssError> {
+    pub(crate) fn decode(b: &[u8]) -> Result<Self, Hl2ssError> {
         if b.len() != 4 * CALIBRATION_FLOATS {
             return Err(Hl2ssError::Calibration(format!(
                 "{} bytes, not {}",
@@ -476,7 +479,7 @@ impl VlcCalibration {
 
     /// The camera's pose on the rig node, column-vector: `point_in_camera = camera_from_rig *
     /// point_in_rig`.
-    pub fn camera_from_rig_node(&self) -> Result<Isometry3<f64>, Hl2ssError> {
+    pub(crate) fn camera_from_rig_node(&self) -> Result<Isometry3<f64>, Hl2ssError> {
         isometry_from_row_vector("extrinsics", &self.extrinsics)
     }
 }
@@ -484,7 +487,7 @@ impl VlcCalibration {
 /// A lens model fitted to an unprojection table, and how well it fits.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LensFit {
-    pub camera: CameraModel,
+    pub(crate) camera: CameraModel,
     /// Root mean square of the reprojection error over the pixels used, pixels.
     pub rms_px: f64,
     pub max_px: f64,
@@ -523,7 +526,7 @@ fn project(p: &Params, x: f64, y: f64) -> (f64, f64) {
 /// Fits OpenCV's rational model (fx, fy, cx, cy, k1..k6, p1, p2: `rig.json`'s 8 coefficients)
 /// to an unprojection table by Levenberg-Marquardt on the pixel reprojection error, over every
 /// `step`-th pixel in each direction with a finite table entry.
-pub fn fit_lens(
+pub(crate) fn fit_lens(
     uv2x: &[f32],
     uv2y: &[f32],
     width: u32,
@@ -666,7 +669,7 @@ pub fn fit_lens(
 /// The stereo rig of two fitted cameras and their extrinsics; mrptv's rig frame is the left
 /// camera's. Also returns `left_from_rig_node`, which turns hl2ss's rig-node poses into
 /// `world_from_rig = world_from_rig_node * rig_node_from_left`.
-pub fn stereo_rig(
+pub(crate) fn stereo_rig(
     left: &LensFit,
     left_calibration: &VlcCalibration,
     right: &LensFit,
@@ -691,12 +694,12 @@ pub fn stereo_rig(
 /// Pairs left and right frames whose timestamps agree within a tolerance. Frames that find no
 /// partner (the other camera's frame was lost, or came too late) are counted and dropped.
 #[derive(Debug)]
-pub struct Pairer {
+pub(crate) struct Pairer {
     tolerance_ticks: u64,
     left: std::collections::VecDeque<VlcFrame>,
     right: std::collections::VecDeque<VlcFrame>,
-    pub unpaired_left: u64,
-    pub unpaired_right: u64,
+    pub(crate) unpaired_left: u64,
+    pub(crate) unpaired_right: u64,
 }
 
 /// How long a frame waits for its partner when the other camera has sent nothing newer (its
@@ -704,7 +707,7 @@ pub struct Pairer {
 const PAIRING_PATIENCE_TICKS: u64 = 10_000_000;
 
 impl Pairer {
-    pub fn new(tolerance_ticks: u64) -> Self {
+    pub(crate) fn new(tolerance_ticks: u64) -> Self {
         Self {
             tolerance_ticks,
             left: Default::default(),
@@ -714,16 +717,16 @@ impl Pairer {
         }
     }
 
-    pub fn tolerance_ticks(&self) -> u64 {
+    pub(crate) fn tolerance_ticks(&self) -> u64 {
         self.tolerance_ticks
     }
 
-    pub fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
+    pub(crate) fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
         self.left.push_back(frame);
         self.pair()
     }
 
-    pub fn push_right(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
+    pub(crate) fn push_right(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
         self.right.push_back(frame);
         self.pair()
     }
@@ -747,7 +750,7 @@ impl Pairer {
     }
 
     /// At the end of the streams: whatever waits for a partner never gets one.
-    pub fn flush(&mut self) {
+    pub(crate) fn flush(&mut self) {
         self.unpaired_left += self.left.len() as u64;
         self.unpaired_right += self.right.len() as u64;
         self.left.clear();
@@ -756,7 +759,7 @@ impl Pairer {
 
     /// Frames a second older than the newest frame of either camera are given up on: one
     /// camera's stream has stalled. (A lagging stream's frames still pair when they come.)
-    pub fn trim(&mut self) {
+    pub(crate) fn trim(&mut self) {
         let newest = [self.left.back(), self.right.back()]
             .into_iter()
             .flatten()

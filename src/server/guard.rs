@@ -28,7 +28,12 @@ pub(super) struct GuardedListener<L> {
 }
 
 impl<L: Listener> GuardedListener<L> {
-    pub fn new(inner: L, max_connections: usize, handshake: Duration, idle: Duration) -> Self {
+    pub(crate) fn new(
+        inner: L,
+        max_connections: usize,
+        handshake: Duration,
+        idle: Duration,
+    ) -> Self {
         let max_connections = max_connections.max(1);
         Self {
             inner,

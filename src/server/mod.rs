@@ -3,7 +3,7 @@
 //! ## Layout
 //! - [`run`] takes a bound listener, options and a shutdown future (tests bind port 0).
 //! - `ingest`: one task per headset WebSocket reads messages, validates them and hands frames to
-//!   the session's pipeline thread through a [`queue::DropOldestQueue`] (bounded: the oldest frame
+//!   the session's pipeline thread through a `queue::DropOldestQueue` (bounded: the oldest frame
 //!   is dropped and reported when the pipeline falls behind). The pipeline thread runs
 //!   [`mrptv_engine::Pipeline`], sends the headset its vector batches first, then publishes them to
 //!   viewers and hands the frame to the session's recorder thread.
@@ -21,7 +21,7 @@
 pub mod access;
 mod guard;
 mod ingest;
-pub mod queue;
+mod queue;
 mod tls_listener;
 mod watch;
 mod web;
@@ -154,20 +154,20 @@ impl Default for ServerOptions {
 /// A batch on its way to viewers, encoded at most once per convention however many watch.
 #[derive(Debug)]
 pub(crate) struct PublishedBatch {
-    pub batch: Batch,
+    pub(crate) batch: Batch,
     /// Per convention, without and with the velocity errors.
     encoded: [[OnceLock<Bytes>; 2]; 3],
 }
 
 impl PublishedBatch {
-    pub fn new(batch: Batch) -> Self {
+    pub(crate) fn new(batch: Batch) -> Self {
         Self {
             batch,
             encoded: Default::default(),
         }
     }
 
-    pub fn encoded(&self, convention: Convention, uncertainty: bool) -> Bytes {
+    pub(crate) fn encoded(&self, convention: Convention, uncertainty: bool) -> Bytes {
         self.encoded[usize::from(convention.code())][usize::from(uncertainty)]
             .get_or_init(|| self.batch.encode_with(convention, uncertainty).into())
             .clone()
@@ -177,16 +177,16 @@ impl PublishedBatch {
 /// A session's mean-flow field, published to its viewers; encoded per convention on demand.
 #[derive(Debug)]
 pub(crate) struct PublishedField {
-    pub session_number: u32,
+    pub(crate) session_number: u32,
     /// The message in OpenCV axes without its rows: each convention's is made from it.
-    pub head: FieldMessage,
+    pub(crate) head: FieldMessage,
     /// World frame, OpenCV axes.
-    pub cells: Vec<CellSummary>,
+    pub(crate) cells: Vec<CellSummary>,
     encoded: [OnceLock<String>; 3],
 }
 
 impl PublishedField {
-    pub fn new(
+    pub(crate) fn new(
         session_number: u32,
         session: String,
         frame: (u64, f64),
@@ -209,7 +209,7 @@ impl PublishedField {
         }
     }
 
-    pub fn message(&self, convention: Convention) -> FieldMessage {
+    pub(crate) fn message(&self, convention: Convention) -> FieldMessage {
         FieldMessage {
             convention,
             cells: FieldMessage::rows(&self.cells, convention),
@@ -217,7 +217,7 @@ impl PublishedField {
         }
     }
 
-    pub fn encoded(&self, convention: Convention) -> String {
+    pub(crate) fn encoded(&self, convention: Convention) -> String {
         self.encoded[usize::from(convention.code())]
             .get_or_init(|| ServerMessage::Field(Box::new(self.message(convention))).to_json())
             .clone()
@@ -244,23 +244,23 @@ pub(crate) enum HubEvent {
 
 /// One live session as others see it.
 pub(crate) struct SessionShared {
-    pub number: u32,
-    pub description: SessionDescription,
-    pub counters: Mutex<Counters>,
+    pub(crate) number: u32,
+    pub(crate) description: SessionDescription,
+    pub(crate) counters: Mutex<Counters>,
     /// Viewers subscribed to this session by name.
-    pub viewers: AtomicUsize,
+    pub(crate) viewers: AtomicUsize,
     /// A viewer asked for the mean-flow field to be emptied; the pipeline thread does it.
-    pub reset_field: AtomicBool,
+    pub(crate) reset_field: AtomicBool,
     /// Closes the session's frame queue: its pipeline then finishes what is queued and ends.
-    pub close_queue: Box<dyn Fn() + Send + Sync>,
+    pub(crate) close_queue: Box<dyn Fn() + Send + Sync>,
 }
 
 impl SessionShared {
-    pub fn id(&self) -> &str {
+    pub(crate) fn id(&self) -> &str {
         &self.description.id
     }
 
-    pub fn counters(&self) -> MutexGuard<'_, Counters> {
+    pub(crate) fn counters(&self) -> MutexGuard<'_, Counters> {
         self.counters
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -269,13 +269,13 @@ impl SessionShared {
 
 /// State shared by every connection.
 pub(crate) struct Hub {
-    pub options: ServerOptions,
+    pub(crate) options: ServerOptions,
     sessions: Mutex<BTreeMap<u32, Arc<SessionShared>>>,
     next_session: AtomicU32,
     /// Viewers subscribed to every session.
-    pub wildcard_viewers: AtomicUsize,
-    pub events: broadcast::Sender<HubEvent>,
-    pub shutdown: watch_channel::Receiver<bool>,
+    pub(crate) wildcard_viewers: AtomicUsize,
+    pub(crate) events: broadcast::Sender<HubEvent>,
+    pub(crate) shutdown: watch_channel::Receiver<bool>,
     connections: AtomicUsize,
     connections_changed: Notify,
     /// Session pipeline threads still running.
@@ -285,7 +285,7 @@ pub(crate) struct Hub {
     session_slots: AtomicUsize,
     /// Serialises viewers' subscription changes, so the per-session limit cannot be overrun by
     /// viewers subscribing at the same moment.
-    pub subscribing: Mutex<()>,
+    pub(crate) subscribing: Mutex<()>,
 }
 
 /// A place among `max_sessions`, held by a session from before its hello is accepted until it
@@ -319,7 +319,7 @@ impl Drop for ConnectionGuard {
 }
 
 impl Hub {
-    pub fn new(options: ServerOptions, shutdown: watch_channel::Receiver<bool>) -> Self {
+    pub(crate) fn new(options: ServerOptions, shutdown: watch_channel::Receiver<bool>) -> Self {
         let (events, _) = broadcast::channel(options.viewer_buffer.max(1));
         Self {
             options,
@@ -338,7 +338,7 @@ impl Hub {
     }
 
     /// A session slot, or `None` when `max_sessions` are taken (checked and taken atomically).
-    pub fn reserve_session(self: &Arc<Self>) -> Option<SessionSlot> {
+    pub(crate) fn reserve_session(self: &Arc<Self>) -> Option<SessionSlot> {
         let max = self.options.max_sessions;
         self.session_slots
             .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
@@ -348,7 +348,7 @@ impl Hub {
             .map(|_| SessionSlot(Arc::clone(self)))
     }
 
-    pub fn worker(self: &Arc<Self>) -> WorkerGuard {
+    pub(crate) fn worker(self: &Arc<Self>) -> WorkerGuard {
         self.workers.fetch_add(1, Ordering::SeqCst);
         WorkerGuard(Arc::clone(self))
     }
@@ -359,16 +359,16 @@ impl Hub {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    pub fn connection(self: &Arc<Self>) -> ConnectionGuard {
+    pub(crate) fn connection(self: &Arc<Self>) -> ConnectionGuard {
         self.connections.fetch_add(1, Ordering::SeqCst);
         ConnectionGuard(Arc::clone(self))
     }
 
-    pub fn next_session_number(&self) -> u32 {
+    pub(crate) fn next_session_number(&self) -> u32 {
         self.next_session.fetch_add(1, Ordering::SeqCst) + 1
     }
 
-    pub fn add_session(&self, session: Arc<SessionShared>) {
+    pub(crate) fn add_session(&self, session: Arc<SessionShared>) {
         self.sessions().insert(session.number, session);
         let _ = self.events.send(HubEvent::SessionsChanged);
     }
@@ -376,7 +376,7 @@ impl Hub {
     /// The session's `session_ended` and `sessions` events are published before the lock is
     /// released: whoever sees the session gone finds both in the ring (a viewer closing at
     /// shutdown relies on it to send them before its bye).
-    pub fn remove_session(&self, number: u32) {
+    pub(crate) fn remove_session(&self, number: u32) {
         let mut sessions = self.sessions();
         if let Some(s) = sessions.remove(&number) {
             let counters = *s.counters();
@@ -390,11 +390,11 @@ impl Hub {
         drop(sessions);
     }
 
-    pub fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
+    pub(crate) fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
         self.sessions().values().find(|s| s.id() == id).cloned()
     }
 
-    pub fn session_list(&self) -> Vec<SessionInfo> {
+    pub(crate) fn session_list(&self) -> Vec<SessionInfo> {
         let wildcard = self.wildcard_viewers.load(Ordering::Relaxed);
         self.sessions()
             .values()
@@ -406,11 +406,11 @@ impl Hub {
             .collect()
     }
 
-    pub fn shutting_down(&self) -> bool {
+    pub(crate) fn shutting_down(&self) -> bool {
         *self.shutdown.borrow()
     }
 
-    pub fn session_count(&self) -> usize {
+    pub(crate) fn session_count(&self) -> usize {
         self.sessions().len()
     }
 }
@@ -424,7 +424,7 @@ pub(crate) struct Keepalive {
 }
 
 impl Keepalive {
-    pub async fn start(idle_timeout: Duration) -> Self {
+    pub(crate) async fn start(idle_timeout: Duration) -> Self {
         let mut ticks = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
         ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         ticks.tick().await;
@@ -436,13 +436,13 @@ impl Keepalive {
     }
 
     /// The peer sent something.
-    pub fn heard(&mut self) {
+    pub(crate) fn heard(&mut self) {
         self.last_heard = tokio::time::Instant::now();
     }
 
     /// Resolves when the next ping is due; `Err` (the reason to close) once the peer has been
     /// silent for the idle timeout.
-    pub async fn ping_due(&mut self) -> Result<(), String> {
+    pub(crate) async fn ping_due(&mut self) -> Result<(), String> {
         self.ticks.tick().await;
         if self.last_heard.elapsed() > self.idle_timeout {
             Err(format!(
