@@ -70,19 +70,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let mut tracks_text = Vec::new();
     let proxy = start_proxy(&mut rerun)?;
-    let logger = if rerun.is_empty() {
-        None
-    } else {
-        let options = RerunOptions {
-            images_every: rerun_images_every,
-            ..Default::default()
-        };
-        let name = rec.file_name().map_or_else(
-            || rec.display().to_string(),
-            |n| n.to_string_lossy().into_owned(),
-        );
-        Some(RerunLogger::start(&name, &rerun, &recording.rig, &options)?)
-    };
+    let logger = start_logger(&rec, &recording, &rerun, rerun_images_every)?;
     let mut points_file = points.as_deref().map(create_output).transpose()?;
     let bar = progress_bar(recording.frames.len(), "process");
     let totals = offline::process_recording(
@@ -130,6 +118,46 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(logger) = logger {
         report_rerun(logger, &rerun);
     }
+    print_totals(&totals, &out);
+    super::print_health(&totals.health(&config));
+    if let Some(proxy) = proxy {
+        println!(
+            "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",
+            proxy.url()
+        );
+        runtime()?.block_on(termination());
+    }
+    Ok(())
+}
+
+/// The Rerun logger of the run, named after the recording; `None` without sinks.
+fn start_logger(
+    rec: &Path,
+    recording: &Recording,
+    sinks: &[RerunSink],
+    images_every: u64,
+) -> Result<Option<RerunLogger>> {
+    if sinks.is_empty() {
+        return Ok(None);
+    }
+    let options = RerunOptions {
+        images_every,
+        ..Default::default()
+    };
+    let name = rec.file_name().map_or_else(
+        || rec.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    Ok(Some(RerunLogger::start(
+        &name,
+        sinks,
+        &recording.rig,
+        &options,
+    )?))
+}
+
+/// What the run found, on stderr.
+fn print_totals(totals: &offline::RunTotals, out: &Path) {
     eprintln!(
         "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough, {} as straying from their neighbours, {} as no measurement: outside the volume or impossibly fast) -> {}; pipeline {:.1} frames/s",
         totals.frames,
@@ -142,15 +170,6 @@ pub fn run(args: Args) -> Result<()> {
         out.display(),
         totals.frames as f64 / totals.pipeline_s.max(1e-9)
     );
-    super::print_health(&totals.health(&config));
-    if let Some(proxy) = proxy {
-        println!(
-            "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",
-            proxy.url()
-        );
-        runtime()?.block_on(termination());
-    }
-    Ok(())
 }
 
 /// Bins the vectors on a grid of `cell_m` (or the default for their volume) and writes the

@@ -533,12 +533,46 @@ pub(crate) fn fit_lens(
     height: u32,
     step: usize,
 ) -> Result<LensFit, Hl2ssError> {
-    let bad = |m: String| Hl2ssError::Calibration(m);
     let n = (width * height) as usize;
     if uv2x.len() != n || uv2y.len() != n {
-        return Err(bad(format!("unprojection tables are not {width}x{height}")));
+        return Err(Hl2ssError::Calibration(format!(
+            "unprojection tables are not {width}x{height}"
+        )));
     }
-    let step = step.max(1);
+    let samples = table_samples(uv2x, uv2y, width, height, step.max(1));
+    if samples.len() < 100 {
+        return Err(Hl2ssError::Calibration(format!(
+            "only {} pixels with a finite unprojection",
+            samples.len()
+        )));
+    }
+    let (params, cost) = refine(&samples, central_pinhole(&samples)?);
+    let max_px = samples
+        .iter()
+        .map(|&(x, y, u, v)| {
+            let (pu, pv) = project(&params, x, y);
+            ((pu - u).powi(2) + (pv - v).powi(2)).sqrt()
+        })
+        .fold(0.0, f64::max);
+    Ok(LensFit {
+        camera: camera_of(&params),
+        rms_px: (cost / samples.len() as f64).sqrt(),
+        max_px,
+        pixels_used: samples.len(),
+    })
+}
+
+/// A table entry the fit uses: the ray's normalised (x, y) and its pixel's (u, v).
+type TableSample = (f64, f64, f64, f64);
+
+/// Every `step`-th pixel of the tables, each way, that has a ray of its own.
+fn table_samples(
+    uv2x: &[f32],
+    uv2y: &[f32],
+    width: u32,
+    height: u32,
+    step: usize,
+) -> Vec<TableSample> {
     let mut samples = Vec::new();
     for v in (0..height as usize).step_by(step) {
         for u in (0..width as usize).step_by(step) {
@@ -559,13 +593,12 @@ pub(crate) fn fit_lens(
             }
         }
     }
-    if samples.len() < 100 {
-        return Err(bad(format!(
-            "only {} pixels with a finite unprojection",
-            samples.len()
-        )));
-    }
-    // A pinhole from the central pixels by linear least squares: u = fx x + cx, v = fy y + cy.
+    samples
+}
+
+/// The fit's start: a pinhole from the central pixels by linear least squares,
+/// u = fx x + cx, v = fy y + cy, without distortion.
+fn central_pinhole(samples: &[TableSample]) -> Result<Params, Hl2ssError> {
     let central: Vec<_> = samples
         .iter()
         .filter(|(x, y, ..)| x * x + y * y < 0.1)
@@ -586,7 +619,7 @@ pub(crate) fn fit_lens(
     let (fx, cx) = line(&mut central.iter().map(|s| (s.0, s.2)));
     let (fy, cy) = line(&mut central.iter().map(|s| (s.1, s.3)));
     if !(fx > 0.0 && fy > 0.0) {
-        return Err(bad(format!(
+        return Err(Hl2ssError::Calibration(format!(
             "the table's axes do not run with the image's (fx {fx:.1}, fy {fy:.1}): not an x-right, y-down camera"
         )));
     }
@@ -595,36 +628,27 @@ pub(crate) fn fit_lens(
     params[1] = fy;
     params[2] = cx;
     params[3] = cy;
-    let cost = |p: &Params| -> f64 {
-        samples
-            .iter()
-            .map(|&(x, y, u, v)| {
-                let (pu, pv) = project(p, x, y);
-                (pu - u).powi(2) + (pv - v).powi(2)
-            })
-            .sum()
-    };
-    let mut current = cost(&params);
+    Ok(params)
+}
+
+/// The sum of squared reprojection errors of `samples` under `p`, pixels squared.
+fn reprojection_cost(samples: &[TableSample], p: &Params) -> f64 {
+    samples
+        .iter()
+        .map(|&(x, y, u, v)| {
+            let (pu, pv) = project(p, x, y);
+            (pu - u).powi(2) + (pv - v).powi(2)
+        })
+        .sum()
+}
+
+/// Levenberg-Marquardt from `params` until a step no longer lowers the cost (at most 200
+/// steps); the parameters and their cost.
+fn refine(samples: &[TableSample], mut params: Params) -> (Params, f64) {
+    let mut current = reprojection_cost(samples, &params);
     let mut lambda = 1e-3;
     for _ in 0..200 {
-        let mut jtj = SMatrix::<f64, FIT_PARAMETERS, FIT_PARAMETERS>::zeros();
-        let mut jtr = Params::zeros();
-        for &(x, y, u, v) in &samples {
-            let (pu, pv) = project(&params, x, y);
-            let (ru, rv) = (pu - u, pv - v);
-            let mut ju = Params::zeros();
-            let mut jv = Params::zeros();
-            for k in 0..FIT_PARAMETERS {
-                let h = 1e-7 * params[k].abs().max(1e-3);
-                let mut q = params;
-                q[k] += h;
-                let (qu, qv) = project(&q, x, y);
-                ju[k] = (qu - pu) / h;
-                jv[k] = (qv - pv) / h;
-            }
-            jtj += ju * ju.transpose() + jv * jv.transpose();
-            jtr += ju * ru + jv * rv;
-        }
+        let (jtj, jtr) = normal_equations(samples, &params);
         let mut improved = false;
         for _ in 0..10 {
             let mut damped = jtj;
@@ -636,7 +660,7 @@ pub(crate) fn fit_lens(
                 continue;
             };
             let candidate = params + delta;
-            let c = cost(&candidate);
+            let c = reprojection_cost(samples, &candidate);
             if c.is_finite() && c < current {
                 let relative = (current - c) / current.max(1e-300);
                 params = candidate;
@@ -651,19 +675,34 @@ pub(crate) fn fit_lens(
             break;
         }
     }
-    let max_px = samples
-        .iter()
-        .map(|&(x, y, u, v)| {
-            let (pu, pv) = project(&params, x, y);
-            ((pu - u).powi(2) + (pv - v).powi(2)).sqrt()
-        })
-        .fold(0.0, f64::max);
-    Ok(LensFit {
-        camera: camera_of(&params),
-        rms_px: (current / samples.len() as f64).sqrt(),
-        max_px,
-        pixels_used: samples.len(),
-    })
+    (params, current)
+}
+
+/// J^T J and J^T r of the reprojection residuals at `params`, the Jacobian by forward
+/// differences.
+fn normal_equations(
+    samples: &[TableSample],
+    params: &Params,
+) -> (SMatrix<f64, FIT_PARAMETERS, FIT_PARAMETERS>, Params) {
+    let mut jtj = SMatrix::<f64, FIT_PARAMETERS, FIT_PARAMETERS>::zeros();
+    let mut jtr = Params::zeros();
+    for &(x, y, u, v) in samples {
+        let (pu, pv) = project(params, x, y);
+        let (ru, rv) = (pu - u, pv - v);
+        let mut ju = Params::zeros();
+        let mut jv = Params::zeros();
+        for k in 0..FIT_PARAMETERS {
+            let h = 1e-7 * params[k].abs().max(1e-3);
+            let mut q = *params;
+            q[k] += h;
+            let (qu, qv) = project(&q, x, y);
+            ju[k] = (qu - pu) / h;
+            jv[k] = (qv - pv) / h;
+        }
+        jtj += ju * ju.transpose() + jv * jv.transpose();
+        jtr += ju * ru + jv * rv;
+    }
+    (jtj, jtr)
 }
 
 /// The stereo rig of two fitted cameras and their extrinsics; mrptv's rig frame is the left
