@@ -62,8 +62,6 @@ pub trait FrameSource: Send + 'static {
     fn rig(&self) -> &StereoRig;
     /// `None` at the end.
     fn next_frame(&mut self) -> Option<Result<SourceFrame, ClientError>>;
-    /// Frames in all, when known.
-    fn frame_count(&self) -> Option<usize>;
     /// The next frame's `t_s`, when known without producing it.
     fn peek_t_s(&self) -> Option<f64> {
         None
@@ -123,10 +121,6 @@ impl FrameSource for RecordingSource {
                 right: read(self.recording.right_path(entry.index))?,
             })
         })())
-    }
-
-    fn frame_count(&self) -> Option<usize> {
-        Some(self.recording.frames.len())
     }
 
     fn peek_t_s(&self) -> Option<f64> {
@@ -210,10 +204,6 @@ impl FrameSource for SyntheticSource {
                 right: encode(f.right)?,
             })
         })())
-    }
-
-    fn frame_count(&self) -> Option<usize> {
-        self.laps.map(|laps| laps as usize * self.frames_per_lap)
     }
 }
 
@@ -420,7 +410,7 @@ fn spawn_source(
 
 /// A WebSocket upgrade request to `url`, with `Authorization: Bearer SECRET` when given (the
 /// server's ingest or watch secret).
-pub fn authorized_request(
+pub(crate) fn authorized_request(
     url: &str,
     secret: Option<&str>,
 ) -> Result<tokio_tungstenite::tungstenite::handshake::client::Request, ClientError> {
@@ -450,6 +440,9 @@ fn refusal(error: &tokio_tungstenite::tungstenite::Error) -> Option<ClientError>
     }
 }
 
+type Socket =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
 /// Streams `source` to the server at `options.url` until it ends or `stop` resolves, then says
 /// bye and waits for the server's. `progress` gets the number of frames sent.
 pub async fn replay(
@@ -458,175 +451,33 @@ pub async fn replay(
     stop: impl Future<Output = ()>,
     mut progress: impl FnMut(u64),
 ) -> Result<ReplayReport, ClientError> {
-    let rig = source.rig().clone();
-    // Frames are large and batches small: Nagle's algorithm would hold batches back ~40 ms.
-    let connector = options
-        .tls
-        .clone()
-        .map(tokio_tungstenite::Connector::Rustls);
-    let request = authorized_request(&options.url, options.secret.as_deref())?;
-    let (socket, _) =
-        tokio_tungstenite::connect_async_tls_with_config(request, None, true, connector)
-            .await
-            .map_err(|error| {
-                refusal(&error).unwrap_or(ClientError::Connect {
-                    url: options.url.clone(),
-                    error,
-                })
-            })?;
-    let (mut sink, mut stream) = socket.split();
-    let hello = HeadsetMessage::Hello(Box::new(Hello {
-        protocol: PROTOCOL_VERSION,
-        client: options.client_name.clone(),
-        rig: rig.to_file(),
-        image: ImageFormat {
-            width: rig.width,
-            height: rig.height,
-            encoding: options.encoding,
-        },
-        convention: options.convention,
-        config: options.config.clone(),
-        uncertainty: false,
-    }));
-    let hello = serde_json::to_string(&hello).map_err(|e| ClientError::Protocol(e.to_string()))?;
-    sink.send(Message::text(hello)).await?;
-    let mut report = ReplayReport::default();
-    // The welcome, or the reason there is none.
-    loop {
-        let message = tokio::time::timeout(Duration::from_secs(30), stream.next())
-            .await
-            .map_err(|_| ClientError::Protocol("no welcome within 30 s".into()))?;
-        match message {
-            Some(Ok(Message::Text(t))) => match serde_json::from_str::<ServerMessage>(t.as_str()) {
-                Ok(ServerMessage::Welcome { session, .. }) => {
-                    report.session = session;
-                    break;
-                }
-                Ok(ServerMessage::Error { code, message, .. }) => {
-                    return Err(ClientError::Refused { code, message })
-                }
-                _ => {}
-            },
-            Some(Ok(_)) => {}
-            Some(Err(e)) => return Err(e.into()),
-            None => return Err(ClientError::Protocol("closed before the welcome".into())),
-        }
-    }
-
-    let (event_tx, mut events) = mpsc::channel::<(Instant, Message)>(4096);
-    let reader = tokio::spawn(async move {
-        while let Some(Ok(m)) = stream.next().await {
-            if event_tx.send((Instant::now(), m)).await.is_err() {
-                break;
-            }
-        }
-    });
+    let (socket, session) = open_session(source.rig(), options).await?;
+    let mut link = Link::new(socket, session, options);
     let started_at = Arc::new(OnceLock::new());
     let mut frames = spawn_source(source, options.rate, Arc::clone(&started_at));
-    // Per unanswered frame: when it was sent, and when it was due.
-    let mut pending: HashMap<u64, (Instant, Instant)> = HashMap::new();
-    let mut latencies: Vec<(u64, f64, f64)> = Vec::new();
     let started = *started_at.get_or_init(Instant::now);
-    let mut last_event = started;
     let mut first_t_s = None;
     let mut next = frames.recv().await.transpose()?;
     let mut finished = false;
     tokio::pin!(stop);
-    let mut handle = |report: &mut ReplayReport,
-                      pending: &mut HashMap<u64, (Instant, Instant)>,
-                      at: Instant,
-                      message: Message|
-     -> Result<bool, ClientError> {
-        match message {
-            Message::Binary(b) => {
-                let batch = decode_batch(&b).map_err(|e| ClientError::Protocol(e.message))?;
-                match batch.kind {
-                    BatchKind::Causal => {
-                        if let Some((sent, due)) = pending.remove(&batch.frame_index) {
-                            latencies.push((
-                                batch.frame_index,
-                                (at - sent).as_secs_f64(),
-                                (at - due).as_secs_f64(),
-                            ));
-                        }
-                        report.causal_batches += 1;
-                        report.last_causal_frame =
-                            report.last_causal_frame.max(Some(batch.frame_index));
-                        report.causal_vectors += batch.vectors.len() as u64;
-                        if options.keep_batches {
-                            report.causal.push(batch);
-                        }
-                    }
-                    BatchKind::Refined => {
-                        report.refined_batches += 1;
-                        report.refined_vectors += batch.vectors.len() as u64;
-                        if options.keep_batches {
-                            report.refined.push(batch);
-                        }
-                    }
-                }
-            }
-            Message::Text(t) => match serde_json::from_str::<ServerMessage>(t.as_str()) {
-                Ok(ServerMessage::Error {
-                    code,
-                    message,
-                    frame_index,
-                }) => {
-                    if let Some(i) = frame_index {
-                        pending.remove(&i);
-                    }
-                    tracing::warn!("server: {message}");
-                    report.errors.push((code, message));
-                }
-                Ok(ServerMessage::Dropped { frame_indices, .. }) => {
-                    for i in frame_indices {
-                        pending.remove(&i);
-                        report.dropped_frames.push(i);
-                    }
-                }
-                Ok(ServerMessage::Status { counters, .. }) => report.counters = Some(counters),
-                Ok(ServerMessage::Recorded {
-                    through_frame_index,
-                    frames_recorded,
-                    ..
-                }) => {
-                    report.recorded_through = Some(through_frame_index);
-                    report.frames_recorded = frames_recorded;
-                }
-                Ok(ServerMessage::Bye { reason, counters }) => {
-                    report.bye_reason = Some(reason);
-                    if counters.is_some() {
-                        report.counters = counters;
-                    }
-                    return Ok(true);
-                }
-                Ok(_) => {}
-                Err(e) => tracing::debug!("unreadable server message ignored: {e}"),
-            },
-            Message::Close(_) => return Ok(true),
-            _ => {}
-        }
-        Ok(false)
-    };
-
     let paced = options.rate != Rate::Max;
+    let window = if paced {
+        options.live_window.max(1)
+    } else {
+        options.max_in_flight.max(1)
+    };
     // A frame taken from the source ahead of its turn, to see whether it overtook the current.
     let mut ahead: Option<Positioned> = None;
     // The position the next frame would have if none were skipped.
     let mut expected_position = 0u64;
     while let Some((position, frame)) = next.take() {
         // The source passed over these, late.
-        report.frames_skipped += position.saturating_sub(expected_position);
+        link.answers.report.frames_skipped += position.saturating_sub(expected_position);
         expected_position = position + 1;
         let t0 = *first_t_s.get_or_insert(frame.t_s);
         let due_of =
             |frame: &SourceFrame, position: u64| options.rate.due(started, t0, frame.t_s, position);
         let due = due_of(&frame, position);
-        let window = if paced {
-            options.live_window.max(1)
-        } else {
-            options.max_in_flight.max(1)
-        };
         if paced && Instant::now() >= due {
             if ahead.is_none() {
                 ahead = frames.try_recv().ok().transpose()?;
@@ -635,48 +486,18 @@ pub async fn replay(
                 .as_ref()
                 .is_some_and(|(at, newer)| Instant::now() >= due_of(newer, *at))
             {
-                report.frames_skipped += 1;
+                link.answers.report.frames_skipped += 1;
                 next = ahead.take();
                 continue;
             }
         }
-        // A live frame waits while the link is backed up: some frame has gone unanswered for
-        // `live_backlog` (big frames on a slow link: more would only queue in the socket).
-        let backed_up = paced
-            && pending
-                .values()
-                .any(|(sent, _)| sent.elapsed() >= options.live_backlog);
-        let open = pending.len() < window && !backed_up;
+        let open = link.answers.pending.len() < window && !(paced && link.backed_up());
         if open && Instant::now() >= due {
-            let message = encode_frame(&FrameMessage {
-                encoding: options.encoding,
-                frame_index: frame.index,
-                t_s: frame.t_s,
-                world_from_rig: frame
-                    .world_from_rig
-                    .and_then(|p| options.convention.flip_pose(&p)),
-                left: &frame.left,
-                right: &frame.right,
-            })
-            .map_err(|e| ClientError::Protocol(e.message))?;
-            // Unpaced, a frame is due when it can go.
-            let now = Instant::now();
-            pending.insert(frame.index, (now, if paced { due } else { now }));
-            if let Err(e) = sink.send(Message::binary(message)).await {
-                // The server may have said bye (shutting down) while this frame was going out.
-                while let Ok((at, m)) = events.try_recv() {
-                    last_event = at;
-                    if handle(&mut report, &mut pending, at, m)? {
-                        finished = true;
-                    }
-                }
-                if finished {
-                    break;
-                }
-                return Err(e.into());
+            if link.send(&frame, paced.then_some(due)).await? {
+                finished = true;
+                break;
             }
-            report.frames_sent += 1;
-            progress(report.frames_sent + report.frames_skipped);
+            progress(link.answers.report.frames_sent + link.answers.report.frames_skipped);
             next = match ahead.take() {
                 Some(frame) => Some(frame),
                 None => frames.recv().await.transpose()?,
@@ -694,10 +515,9 @@ pub async fn replay(
             due.max(Instant::now()) + interval
         };
         tokio::select! {
-            event = events.recv() => match event {
+            event = link.events.recv() => match event {
                 Some((at, m)) => {
-                    last_event = at;
-                    if handle(&mut report, &mut pending, at, m)? {
+                    if link.take(at, m)? {
                         finished = true;
                         break;
                     }
@@ -708,29 +528,293 @@ pub async fn replay(
             _ = &mut stop => break,
         }
     }
-    if !finished {
-        sink.send(Message::text(r#"{"type":"bye"}"#)).await?;
-        let drain = async {
-            while let Some((at, m)) = events.recv().await {
-                last_event = at;
-                if handle(&mut report, &mut pending, at, m)? {
+    link.finish(finished, started).await
+}
+
+/// Connects, says hello with `rig` and waits for the welcome; the socket and the session's id.
+async fn open_session(
+    rig: &StereoRig,
+    options: &ReplayOptions,
+) -> Result<(Socket, String), ClientError> {
+    // Frames are large and batches small: Nagle's algorithm would hold batches back ~40 ms.
+    let connector = options
+        .tls
+        .clone()
+        .map(tokio_tungstenite::Connector::Rustls);
+    let request = authorized_request(&options.url, options.secret.as_deref())?;
+    let (mut socket, _) =
+        tokio_tungstenite::connect_async_tls_with_config(request, None, true, connector)
+            .await
+            .map_err(|error| {
+                refusal(&error).unwrap_or(ClientError::Connect {
+                    url: options.url.clone(),
+                    error,
+                })
+            })?;
+    let hello = HeadsetMessage::Hello(Box::new(Hello {
+        protocol: PROTOCOL_VERSION,
+        client: options.client_name.clone(),
+        rig: rig.to_file(),
+        image: ImageFormat {
+            width: rig.width,
+            height: rig.height,
+            encoding: options.encoding,
+        },
+        convention: options.convention,
+        config: options.config.clone(),
+        uncertainty: false,
+    }));
+    let hello = serde_json::to_string(&hello).map_err(|e| ClientError::Protocol(e.to_string()))?;
+    socket.send(Message::text(hello)).await?;
+    // The welcome, or the reason there is none.
+    loop {
+        let message = tokio::time::timeout(Duration::from_secs(30), socket.next())
+            .await
+            .map_err(|_| ClientError::Protocol("no welcome within 30 s".into()))?;
+        match message {
+            Some(Ok(Message::Text(t))) => match serde_json::from_str::<ServerMessage>(t.as_str()) {
+                Ok(ServerMessage::Welcome { session, .. }) => return Ok((socket, session)),
+                Ok(ServerMessage::Error { code, message, .. }) => {
+                    return Err(ClientError::Refused { code, message })
+                }
+                _ => {}
+            },
+            Some(Ok(_)) => {}
+            Some(Err(e)) => return Err(e.into()),
+            None => return Err(ClientError::Protocol("closed before the welcome".into())),
+        }
+    }
+}
+
+/// A welcomed session's link: frames out through `sink`; the server's messages in, stamped on
+/// arrival by a reader task, and what they said so far.
+struct Link<'a> {
+    options: &'a ReplayOptions,
+    sink: futures_util::stream::SplitSink<Socket, Message>,
+    events: mpsc::Receiver<(Instant, Message)>,
+    reader: tokio::task::JoinHandle<()>,
+    answers: Answers,
+    /// When the last server message arrived.
+    last_event: Option<Instant>,
+}
+
+impl<'a> Link<'a> {
+    fn new(socket: Socket, session: String, options: &'a ReplayOptions) -> Self {
+        let (sink, mut stream) = socket.split();
+        let (event_tx, events) = mpsc::channel::<(Instant, Message)>(4096);
+        let reader = tokio::spawn(async move {
+            while let Some(Ok(m)) = stream.next().await {
+                if event_tx.send((Instant::now(), m)).await.is_err() {
                     break;
                 }
             }
-            Ok::<(), ClientError>(())
-        };
-        match tokio::time::timeout(options.finish_timeout, drain).await {
-            Ok(r) => r?,
-            Err(_) => tracing::warn!("no bye from the server within {:?}", options.finish_timeout),
+        });
+        Self {
+            options,
+            sink,
+            events,
+            reader,
+            answers: Answers {
+                report: ReplayReport {
+                    session,
+                    ..Default::default()
+                },
+                pending: HashMap::new(),
+                latencies: Vec::new(),
+                keep_batches: options.keep_batches,
+            },
+            last_event: None,
         }
     }
-    let _ = sink.close().await;
-    reader.abort();
-    latencies.sort_by_key(|(index, ..)| *index);
-    report.ages_s = latencies.iter().map(|l| l.2).collect();
-    report.latencies_s = latencies.into_iter().map(|l| l.1).collect();
-    report.elapsed_s = (last_event - started).as_secs_f64();
-    Ok(report)
+
+    /// Takes one server message received at `at`; `true` once the session is over.
+    fn take(&mut self, at: Instant, message: Message) -> Result<bool, ClientError> {
+        self.last_event = Some(at);
+        self.answers.take(at, message)
+    }
+
+    /// A live frame waits while the link is backed up: some frame has gone unanswered for
+    /// `live_backlog` (big frames on a slow link: more would only queue in the socket).
+    fn backed_up(&self) -> bool {
+        self.answers
+            .pending
+            .values()
+            .any(|(sent, _)| sent.elapsed() >= self.options.live_backlog)
+    }
+
+    /// Sends `frame`, due at `due` when paced (unpaced, a frame is due when it can go); `true`
+    /// when the send failed because the server had already ended the session.
+    async fn send(
+        &mut self,
+        frame: &SourceFrame,
+        due: Option<Instant>,
+    ) -> Result<bool, ClientError> {
+        let options = self.options;
+        let message = encode_frame(&FrameMessage {
+            encoding: options.encoding,
+            frame_index: frame.index,
+            t_s: frame.t_s,
+            world_from_rig: frame
+                .world_from_rig
+                .and_then(|p| options.convention.flip_pose(&p)),
+            left: &frame.left,
+            right: &frame.right,
+        })
+        .map_err(|e| ClientError::Protocol(e.message))?;
+        let now = Instant::now();
+        self.answers
+            .pending
+            .insert(frame.index, (now, due.unwrap_or(now)));
+        if let Err(e) = self.sink.send(Message::binary(message)).await {
+            // The server may have said bye (shutting down) while this frame was going out.
+            let mut finished = false;
+            while let Ok((at, m)) = self.events.try_recv() {
+                if self.take(at, m)? {
+                    finished = true;
+                }
+            }
+            if finished {
+                return Ok(true);
+            }
+            return Err(e.into());
+        }
+        self.answers.report.frames_sent += 1;
+        Ok(false)
+    }
+
+    /// Unless the session is over already, says bye and takes what the server still sends
+    /// until its bye; then closes and reports, its time counted from `started`.
+    async fn finish(
+        mut self,
+        finished: bool,
+        started: Instant,
+    ) -> Result<ReplayReport, ClientError> {
+        if !finished {
+            self.sink.send(Message::text(r#"{"type":"bye"}"#)).await?;
+            let finish_timeout = self.options.finish_timeout;
+            let drain = async {
+                while let Some((at, m)) = self.events.recv().await {
+                    if self.take(at, m)? {
+                        break;
+                    }
+                }
+                Ok::<(), ClientError>(())
+            };
+            match tokio::time::timeout(finish_timeout, drain).await {
+                Ok(r) => r?,
+                Err(_) => tracing::warn!("no bye from the server within {finish_timeout:?}"),
+            }
+        }
+        let _ = self.sink.close().await;
+        self.reader.abort();
+        let Answers {
+            mut report,
+            mut latencies,
+            ..
+        } = self.answers;
+        latencies.sort_by_key(|(index, ..)| *index);
+        report.ages_s = latencies.iter().map(|l| l.2).collect();
+        report.latencies_s = latencies.into_iter().map(|l| l.1).collect();
+        report.elapsed_s = (self.last_event.unwrap_or(started) - started).as_secs_f64();
+        Ok(report)
+    }
+}
+
+/// What the server has answered so far, and the frames it has yet to answer.
+struct Answers {
+    report: ReplayReport,
+    /// Per unanswered frame: when it was sent, and when it was due.
+    pending: HashMap<u64, (Instant, Instant)>,
+    /// Per answered frame: its index, latency and age, seconds.
+    latencies: Vec<(u64, f64, f64)>,
+    keep_batches: bool,
+}
+
+impl Answers {
+    /// Takes one server message received at `at`; `true` once the session is over (its bye,
+    /// or a close).
+    fn take(&mut self, at: Instant, message: Message) -> Result<bool, ClientError> {
+        match message {
+            Message::Binary(b) => self.take_batch(at, &b)?,
+            Message::Text(t) => return Ok(self.take_text(t.as_str())),
+            Message::Close(_) => return Ok(true),
+            _ => {}
+        }
+        Ok(false)
+    }
+
+    fn take_batch(&mut self, at: Instant, bytes: &[u8]) -> Result<(), ClientError> {
+        let batch = decode_batch(bytes).map_err(|e| ClientError::Protocol(e.message))?;
+        let report = &mut self.report;
+        match batch.kind {
+            BatchKind::Causal => {
+                if let Some((sent, due)) = self.pending.remove(&batch.frame_index) {
+                    self.latencies.push((
+                        batch.frame_index,
+                        (at - sent).as_secs_f64(),
+                        (at - due).as_secs_f64(),
+                    ));
+                }
+                report.causal_batches += 1;
+                report.last_causal_frame = report.last_causal_frame.max(Some(batch.frame_index));
+                report.causal_vectors += batch.vectors.len() as u64;
+                if self.keep_batches {
+                    report.causal.push(batch);
+                }
+            }
+            BatchKind::Refined => {
+                report.refined_batches += 1;
+                report.refined_vectors += batch.vectors.len() as u64;
+                if self.keep_batches {
+                    report.refined.push(batch);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// `true` on the server's bye.
+    fn take_text(&mut self, text: &str) -> bool {
+        let report = &mut self.report;
+        match serde_json::from_str::<ServerMessage>(text) {
+            Ok(ServerMessage::Error {
+                code,
+                message,
+                frame_index,
+            }) => {
+                if let Some(i) = frame_index {
+                    self.pending.remove(&i);
+                }
+                tracing::warn!("server: {message}");
+                report.errors.push((code, message));
+            }
+            Ok(ServerMessage::Dropped { frame_indices, .. }) => {
+                for i in frame_indices {
+                    self.pending.remove(&i);
+                    report.dropped_frames.push(i);
+                }
+            }
+            Ok(ServerMessage::Status { counters, .. }) => report.counters = Some(counters),
+            Ok(ServerMessage::Recorded {
+                through_frame_index,
+                frames_recorded,
+                ..
+            }) => {
+                report.recorded_through = Some(through_frame_index);
+                report.frames_recorded = frames_recorded;
+            }
+            Ok(ServerMessage::Bye { reason, counters }) => {
+                report.bye_reason = Some(reason);
+                if counters.is_some() {
+                    report.counters = counters;
+                }
+                return true;
+            }
+            Ok(_) => {}
+            Err(e) => tracing::debug!("unreadable server message ignored: {e}"),
+        }
+        false
+    }
 }
 
 #[cfg(test)]

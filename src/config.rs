@@ -21,7 +21,7 @@ pub enum ConfigError {
     Invalid { path: PathBuf, error: PipelineError },
 }
 
-pub fn parse(path: &Path, text: &str) -> Result<PipelineConfig, ConfigError> {
+pub(crate) fn parse(path: &Path, text: &str) -> Result<PipelineConfig, ConfigError> {
     let config: PipelineConfig = toml::from_str(text).map_err(|error| ConfigError::Parse {
         path: path.to_path_buf(),
         error,

@@ -111,14 +111,10 @@ impl FrameSource for LoopedSource {
         self.next += 1;
         Some(Ok(out))
     }
-
-    fn frame_count(&self) -> Option<usize> {
-        self.limit.map(|l| l as usize)
-    }
 }
 
 /// Resident and peak memory of a process, MiB.
-pub fn process_memory_mib(pid: u32) -> Option<(f64, f64)> {
+pub(crate) fn process_memory_mib(pid: u32) -> Option<(f64, f64)> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let field = |name: &str| -> Option<f64> {
         let line = status.lines().find(|l| l.starts_with(name))?;
@@ -255,6 +251,115 @@ async fn watch(
     Ok(())
 }
 
+type Viewer = tokio::task::JoinHandle<Result<(), String>>;
+
+/// Waits (5 s at most) until every viewer has received the `published` batches (the headsets
+/// have their last ones; the viewers' copies may still be on the way), then stops the viewers;
+/// the batches each received.
+async fn stop_viewers(
+    viewers: Vec<Viewer>,
+    received: &[Arc<AtomicU64>],
+    published: u64,
+    stop: tokio::sync::watch::Sender<bool>,
+) -> Result<Vec<u64>, LoadError> {
+    let drain_by = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < drain_by
+        && received
+            .iter()
+            .any(|r| r.load(Ordering::Relaxed) < published)
+    {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let _ = stop.send(true);
+    for (n, v) in viewers.into_iter().enumerate() {
+        v.await
+            .map_err(|e| LoadError::Viewer(n, e.to_string()))?
+            .map_err(|e| LoadError::Viewer(n, e))?;
+    }
+    Ok(received.iter().map(|r| r.load(Ordering::Relaxed)).collect())
+}
+
+impl LoadReport {
+    /// The latency percentiles of `latencies_s`, the processing rate, and the batches each
+    /// viewer `received`.
+    fn add_figures(&mut self, latencies_s: Vec<f64>, received: &[u64]) {
+        let all = client::ReplayReport {
+            latencies_s,
+            ..Default::default()
+        };
+        let ms = |p: f64| all.latency_percentile_s(p).map(|s| s * 1e3);
+        self.latency_ms_p50 = ms(50.0);
+        self.latency_ms_p90 = ms(90.0);
+        self.latency_ms_p99 = ms(99.0);
+        self.latency_ms_max = ms(100.0);
+        self.frames_per_second = self.frames_processed as f64 / self.seconds.max(1e-9);
+        self.viewer_batches_min = received.iter().copied().min().unwrap_or(0);
+        self.viewer_batches_mean = if received.is_empty() {
+            0.0
+        } else {
+            received.iter().sum::<u64>() as f64 / received.len() as f64
+        };
+    }
+}
+
+type Headset = tokio::task::JoinHandle<Result<client::ReplayReport, ClientError>>;
+
+/// Headset `n`: streams `source` to the server at `addr` until `stop` says so; each frame sent
+/// counts in `sent`.
+fn spawn_headset(
+    n: usize,
+    source: LoopedSource,
+    options: &LoadOptions,
+    addr: &str,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+    sent: Arc<AtomicU64>,
+) -> Headset {
+    let replay = ReplayOptions {
+        client_name: format!("mrptv load headset {n}"),
+        encoding: Encoding::Raw8,
+        rate: options.rate,
+        keep_batches: false,
+        ..ReplayOptions::new(format!("ws://{addr}/v1/ingest"))
+    };
+    tokio::spawn(async move {
+        client::replay(
+            source,
+            &replay,
+            async move {
+                let _ = stop.wait_for(|s| *s).await;
+            },
+            |_| {
+                sent.fetch_add(1, Ordering::Relaxed);
+            },
+        )
+        .await
+    })
+}
+
+/// Waits for every headset and adds what each sent and the server counted to `report`; their
+/// latencies, seconds.
+async fn add_headsets(
+    report: &mut LoadReport,
+    headsets: Vec<Headset>,
+) -> Result<Vec<f64>, LoadError> {
+    let mut latencies = Vec::new();
+    for (n, h) in headsets.into_iter().enumerate() {
+        let r = h
+            .await
+            .map_err(|e| LoadError::Headset(n, ClientError::Protocol(e.to_string())))?
+            .map_err(|e| LoadError::Headset(n, e))?;
+        report.frames_sent += r.frames_sent;
+        if let Some(c) = r.counters {
+            report.frames_processed += c.frames_processed;
+            report.frames_dropped += c.frames_dropped;
+            report.frames_rejected += c.frames_rejected;
+        }
+        report.batches_published += r.causal_batches + r.refined_batches;
+        latencies.extend(r.latencies_s);
+    }
+    Ok(latencies)
+}
+
 /// Runs the load; `progress` gets (seconds elapsed, frames sent so far) about 4 times a second.
 pub async fn run(
     options: &LoadOptions,
@@ -269,7 +374,7 @@ pub async fn run(
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let (viewers_stop_tx, viewers_stop_rx) = tokio::sync::watch::channel(false);
     let received: Vec<Arc<AtomicU64>> = (0..options.viewers).map(|_| Default::default()).collect();
-    let viewers: Vec<_> = received
+    let viewers: Vec<Viewer> = received
         .iter()
         .map(|count| {
             tokio::spawn(watch(
@@ -292,28 +397,14 @@ pub async fn run(
                 next: 0,
                 limit: options.frames_per_headset,
             };
-            let replay = ReplayOptions {
-                client_name: format!("mrptv load headset {n}"),
-                encoding: Encoding::Raw8,
-                rate: options.rate,
-                keep_batches: false,
-                ..ReplayOptions::new(format!("ws://{addr}/v1/ingest"))
-            };
-            let mut stop = stop_rx.clone();
-            let sent = Arc::clone(&sent);
-            tokio::spawn(async move {
-                client::replay(
-                    source,
-                    &replay,
-                    async move {
-                        let _ = stop.wait_for(|s| *s).await;
-                    },
-                    |_| {
-                        sent.fetch_add(1, Ordering::Relaxed);
-                    },
-                )
-                .await
-            })
+            spawn_headset(
+                n,
+                source,
+                options,
+                &addr,
+                stop_rx.clone(),
+                Arc::clone(&sent),
+            )
         })
         .collect();
     let mut tick = tokio::time::interval(Duration::from_millis(250));
@@ -334,57 +425,19 @@ pub async fn run(
         seconds,
         ..Default::default()
     };
-    let mut latencies = Vec::new();
-    for (n, h) in headsets.into_iter().enumerate() {
-        let r = h
-            .await
-            .map_err(|e| LoadError::Headset(n, ClientError::Protocol(e.to_string())))?
-            .map_err(|e| LoadError::Headset(n, e))?;
-        report.frames_sent += r.frames_sent;
-        if let Some(c) = r.counters {
-            report.frames_processed += c.frames_processed;
-            report.frames_dropped += c.frames_dropped;
-            report.frames_rejected += c.frames_rejected;
-        }
-        report.batches_published += r.causal_batches + r.refined_batches;
-        latencies.extend(r.latencies_s);
-    }
+    let latencies = add_headsets(&mut report, headsets).await?;
     let (rss_end, rss_peak) = process_memory_mib(pid).unwrap_or_default();
-    // The headsets have their last batches; the viewers' copies may still be on the way.
-    let drain_by = Instant::now() + Duration::from_secs(5);
-    while Instant::now() < drain_by
-        && received
-            .iter()
-            .any(|r| r.load(Ordering::Relaxed) < report.batches_published)
-    {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    let _ = viewers_stop_tx.send(true);
-    for (n, v) in viewers.into_iter().enumerate() {
-        v.await
-            .map_err(|e| LoadError::Viewer(n, e.to_string()))?
-            .map_err(|e| LoadError::Viewer(n, e))?;
-    }
-    let received: Vec<u64> = received.iter().map(|r| r.load(Ordering::Relaxed)).collect();
+    let received = stop_viewers(
+        viewers,
+        &received,
+        report.batches_published,
+        viewers_stop_tx,
+    )
+    .await?;
     report.clean_exit = tokio::task::spawn_blocking(move || server.stop())
         .await
         .unwrap_or(false);
-    let all = client::ReplayReport {
-        latencies_s: latencies,
-        ..Default::default()
-    };
-    let ms = |p: f64| all.latency_percentile_s(p).map(|s| s * 1e3);
-    report.latency_ms_p50 = ms(50.0);
-    report.latency_ms_p90 = ms(90.0);
-    report.latency_ms_p99 = ms(99.0);
-    report.latency_ms_max = ms(100.0);
-    report.frames_per_second = report.frames_processed as f64 / seconds.max(1e-9);
-    report.viewer_batches_min = received.iter().copied().min().unwrap_or(0);
-    report.viewer_batches_mean = if received.is_empty() {
-        0.0
-    } else {
-        received.iter().sum::<u64>() as f64 / received.len() as f64
-    };
+    report.add_figures(latencies, &received);
     report.rss_start_mib = rss_start;
     report.rss_end_mib = rss_end;
     report.rss_peak_mib = rss_peak;

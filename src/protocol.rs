@@ -13,20 +13,20 @@ use mrptv_engine::{PipelineConfig, VelocityVector};
 
 /// The protocol major version this build speaks.
 pub const PROTOCOL_VERSION: u32 = 1;
-pub const FRAME_MAGIC: [u8; 4] = *b"MRPF";
-pub const BATCH_MAGIC: [u8; 4] = *b"MRPV";
+pub(crate) const FRAME_MAGIC: [u8; 4] = *b"MRPF";
+pub(crate) const BATCH_MAGIC: [u8; 4] = *b"MRPV";
 /// Bytes before the optional pose in a frame message.
-pub const FRAME_HEADER_BYTES: usize = 32;
-pub const POSE_BYTES: usize = 16 * 8;
-pub const BATCH_HEADER_BYTES: usize = 40;
-pub const BATCH_RECORD_BYTES: usize = 40;
+pub(crate) const FRAME_HEADER_BYTES: usize = 32;
+pub(crate) const POSE_BYTES: usize = 16 * 8;
+pub(crate) const BATCH_HEADER_BYTES: usize = 40;
+pub(crate) const BATCH_RECORD_BYTES: usize = 40;
 const FRAME_FLAG_POSE: u16 = 1;
 const BATCH_FLAG_WORLD: u8 = 1;
 /// Header flag: `count` blocks of [`BATCH_SIGMA_BYTES`] follow the records (asked for with
 /// `"uncertainty": true` in `hello` or `subscribe`).
 const BATCH_FLAG_SIGMAS: u8 = 2;
 /// Per vector: the 1-sigma errors of u, v and w, 3 x f32, m/s.
-pub const BATCH_SIGMA_BYTES: usize = 12;
+pub(crate) const BATCH_SIGMA_BYTES: usize = 12;
 const VECTOR_FLAG_REFINED: u16 = 1;
 const VECTOR_FLAG_WORLD: u16 = 2;
 
@@ -47,7 +47,7 @@ pub enum Convention {
 }
 
 impl Convention {
-    pub fn code(self) -> u8 {
+    pub(crate) fn code(self) -> u8 {
         match self {
             Convention::OpenCv => 0,
             Convention::Unity => 1,
@@ -55,7 +55,7 @@ impl Convention {
         }
     }
 
-    pub fn from_code(code: u8) -> Option<Self> {
+    pub(crate) fn from_code(code: u8) -> Option<Self> {
         match code {
             0 => Some(Convention::OpenCv),
             1 => Some(Convention::Unity),
@@ -66,7 +66,7 @@ impl Convention {
 
     /// Per-axis signs taking OpenCV coordinates to this convention (and back: each is its own
     /// inverse).
-    pub fn axis_signs(self) -> Vector3<f64> {
+    pub(crate) fn axis_signs(self) -> Vector3<f64> {
         match self {
             Convention::OpenCv => Vector3::new(1.0, 1.0, 1.0),
             Convention::Unity => Vector3::new(1.0, -1.0, 1.0),
@@ -82,7 +82,7 @@ impl Convention {
     /// A `world_from_rig` pose given in this convention, in OpenCV coordinates, or the reverse:
     /// `F T F` with `F` the axis flip (its own inverse), a proper rigid motion whichever
     /// handedness `F` has.
-    pub fn flip_pose(self, pose: &Isometry3<f64>) -> Option<Isometry3<f64>> {
+    pub(crate) fn flip_pose(self, pose: &Isometry3<f64>) -> Option<Isometry3<f64>> {
         if self == Convention::OpenCv {
             return Some(*pose);
         }
@@ -131,12 +131,12 @@ pub enum Encoding {
     /// A PNG file holding an 8-bit grayscale image of the declared size.
     Png,
     /// The pixels that can belong to a particle, exact, and the background per block
-    /// ([`crate::sparse`]): a tenth of PNG's size or less, for a headset's Wi-Fi.
+    /// (`sparse` module): a tenth of PNG's size or less, for a headset's Wi-Fi.
     Sparse,
 }
 
 impl Encoding {
-    pub fn code(self) -> u8 {
+    pub(crate) fn code(self) -> u8 {
         match self {
             Encoding::Raw8 => 0,
             Encoding::Png => 1,
@@ -144,7 +144,7 @@ impl Encoding {
         }
     }
 
-    pub fn from_code(code: u8) -> Option<Self> {
+    pub(crate) fn from_code(code: u8) -> Option<Self> {
         match code {
             0 => Some(Encoding::Raw8),
             1 => Some(Encoding::Png),
@@ -480,7 +480,7 @@ impl FieldMessage {
 
     /// `cells` (in the engine's OpenCV world frame) as rows in `convention`: positions and
     /// mean velocities flipped, spreads unsigned.
-    pub fn rows(
+    pub(crate) fn rows(
         cells: &[mrptv_engine::field::CellSummary],
         convention: Convention,
     ) -> Vec<[f64; 14]> {
@@ -502,13 +502,13 @@ impl FieldMessage {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{message}")]
 pub struct ProtocolError {
-    pub code: ErrorCode,
-    pub message: String,
-    pub frame_index: Option<u64>,
+    pub(crate) code: ErrorCode,
+    pub(crate) message: String,
+    pub(crate) frame_index: Option<u64>,
 }
 
 impl ProtocolError {
-    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+    pub(crate) fn new(code: ErrorCode, message: impl Into<String>) -> Self {
         Self {
             code,
             message: message.into(),
@@ -516,7 +516,7 @@ impl ProtocolError {
         }
     }
 
-    pub fn to_message(&self) -> ServerMessage {
+    pub(crate) fn to_message(&self) -> ServerMessage {
         ServerMessage::Error {
             code: self.code,
             message: self.message.clone(),
@@ -849,7 +849,7 @@ pub struct WireVector {
     pub track_id: u64,
     pub position_m: [f32; 3],
     pub velocity_m_per_s: [f32; 3],
-    pub rms_residual_m: f32,
+    pub(crate) rms_residual_m: f32,
     pub flags: u16,
     /// 1-sigma velocity errors, m/s, where the batch carries them.
     pub velocity_sigma: Option<[f32; 3]>,
@@ -869,7 +869,7 @@ pub struct DecodedBatch {
     pub world: bool,
     pub session_number: u32,
     pub frame_index: u64,
-    pub t_s: f64,
+    pub(crate) t_s: f64,
     pub processing_us: u32,
     pub age_us: u32,
     pub vectors: Vec<WireVector>,

@@ -56,17 +56,17 @@ pub struct FrameEntry {
     pub world_from_rig: Option<Isometry3<f64>>,
 }
 
-pub fn image_name(index: u64) -> String {
+pub(crate) fn image_name(index: u64) -> String {
     format!("{index:06}.png")
 }
 
-pub fn read_rig(path: &Path) -> Result<StereoRig, RecordingError> {
+pub(crate) fn read_rig(path: &Path) -> Result<StereoRig, RecordingError> {
     let text = fs::read_to_string(path).map_err(io_error(path))?;
     parse_rig(path, &text)
 }
 
 /// [`read_rig`] of text from anywhere; `path` names it in errors.
-pub fn parse_rig(path: &Path, text: &str) -> Result<StereoRig, RecordingError> {
+pub(crate) fn parse_rig(path: &Path, text: &str) -> Result<StereoRig, RecordingError> {
     let file: RigFile = serde_json::from_str(text).map_err(|error| RecordingError::Json {
         path: path.to_path_buf(),
         error,
@@ -77,7 +77,7 @@ pub fn parse_rig(path: &Path, text: &str) -> Result<StereoRig, RecordingError> {
     })
 }
 
-pub fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
+pub(crate) fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
     let json =
         serde_json::to_string_pretty(&rig.to_file()).map_err(|error| RecordingError::Json {
             path: path.to_path_buf(),
@@ -86,13 +86,13 @@ pub fn write_rig(path: &Path, rig: &StereoRig) -> Result<(), RecordingError> {
     fs::write(path, json + "\n").map_err(io_error(path))
 }
 
-pub fn read_frames(path: &Path) -> Result<Vec<FrameEntry>, RecordingError> {
+pub(crate) fn read_frames(path: &Path) -> Result<Vec<FrameEntry>, RecordingError> {
     let file = fs::File::open(path).map_err(io_error(path))?;
     parse_frames(path, std::io::BufReader::new(file))
 }
 
 /// [`read_frames`] of text from anywhere; `path` names it in errors.
-pub fn parse_frames(
+pub(crate) fn parse_frames(
     path: &Path,
     text: impl std::io::BufRead,
 ) -> Result<Vec<FrameEntry>, RecordingError> {
@@ -143,7 +143,11 @@ pub fn parse_frames(
 }
 
 /// Reads an 8-bit grayscale PNG and checks its size.
-pub fn read_gray_png(path: &Path, width: u32, height: u32) -> Result<Vec<u8>, RecordingError> {
+pub(crate) fn read_gray_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+) -> Result<Vec<u8>, RecordingError> {
     let bytes = fs::read(path).map_err(io_error(path))?;
     decode_gray_png(&bytes, width, height).map_err(|message| RecordingError::Image {
         path: path.to_path_buf(),
@@ -152,7 +156,7 @@ pub fn read_gray_png(path: &Path, width: u32, height: u32) -> Result<Vec<u8>, Re
 }
 
 /// Decodes an 8-bit grayscale PNG of a known size from memory.
-pub fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+pub(crate) fn decode_gray_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
     use image::ImageDecoder;
     let decoder = image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
         .map_err(|e| format!("not a readable PNG: {e}"))?;
@@ -272,7 +276,7 @@ impl Recording {
 /// Writes a recording frame by frame. Each image is written to a temporary name and renamed, and
 /// the frame's line is appended to `frames.csv` only after both images are in place, so a
 /// recording cut short at any moment lists only complete frames.
-pub struct RecordingWriter {
+pub(crate) struct RecordingWriter {
     dir: PathBuf,
     frames: fs::File,
     /// Sync each image before naming it (live recordings, whose frames are acknowledged).
@@ -283,7 +287,11 @@ pub struct RecordingWriter {
 }
 
 impl RecordingWriter {
-    pub fn create(dir: &Path, rig: &StereoRig, with_pose: bool) -> Result<Self, RecordingError> {
+    pub(crate) fn create(
+        dir: &Path,
+        rig: &StereoRig,
+        with_pose: bool,
+    ) -> Result<Self, RecordingError> {
         for sub in ["left", "right"] {
             let d = dir.join(sub);
             fs::create_dir_all(&d).map_err(io_error(&d))?;
@@ -309,7 +317,7 @@ impl RecordingWriter {
 
     /// From now on each frame is made durable by [`Self::sync`] (images are synced before they
     /// are named); the recording's directory, `rig.json` and header are synced now.
-    pub fn into_durable(mut self) -> Result<Self, RecordingError> {
+    pub(crate) fn into_durable(mut self) -> Result<Self, RecordingError> {
         self.durable = true;
         let rig = self.dir.join("rig.json");
         fs::File::open(&rig)
@@ -325,7 +333,7 @@ impl RecordingWriter {
         Ok(self)
     }
 
-    pub fn write_frame(
+    pub(crate) fn write_frame(
         &mut self,
         entry: &FrameEntry,
         left: &[u8],
@@ -364,7 +372,7 @@ impl RecordingWriter {
 
     /// Makes every frame written so far durable: the images' directory entries and
     /// `frames.csv` are synced. A frame is safe from power loss once this returns.
-    pub fn sync(&mut self) -> Result<(), RecordingError> {
+    pub(crate) fn sync(&mut self) -> Result<(), RecordingError> {
         for sub in ["left", "right"] {
             let d = self.dir.join(sub);
             fs::File::open(&d)

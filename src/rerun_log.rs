@@ -46,8 +46,8 @@ pub enum RerunSink {
     Serve(u16),
 }
 
-pub const DEFAULT_VIEWER_URL: &str = "rerun+http://127.0.0.1:9876/proxy";
-pub const DEFAULT_SERVE_PORT: u16 = 9876;
+pub(crate) const DEFAULT_VIEWER_URL: &str = "rerun+http://127.0.0.1:9876/proxy";
+pub(crate) const DEFAULT_SERVE_PORT: u16 = 9876;
 
 /// A Rerun gRPC server (Rerun's message proxy) on 127.0.0.1, alive as long as this value.
 /// Viewers connect to it; mrptv's recordings are sent to it like to any viewer, so one server
@@ -166,26 +166,26 @@ pub enum RerunError {
 }
 
 /// Left and right 8-bit pixels, rig-sized.
-pub type ImagePair = (Arc<[u8]>, Arc<[u8]>);
+pub(crate) type ImagePair = (Arc<[u8]>, Arc<[u8]>);
 
 /// One frame's worth of data to log.
 #[derive(Debug, Clone, Default)]
-pub struct FrameLog {
-    pub frame_index: u64,
-    pub t_s: f64,
-    pub world_from_rig: Option<Isometry3<f64>>,
-    pub detections_left: Vec<Detection>,
-    pub detections_right: Vec<Detection>,
-    pub points: Vec<MatchedPoint>,
-    pub causal_vectors: Vec<VelocityVector>,
+pub(crate) struct FrameLog {
+    pub(crate) frame_index: u64,
+    pub(crate) t_s: f64,
+    pub(crate) world_from_rig: Option<Isometry3<f64>>,
+    pub(crate) detections_left: Vec<Detection>,
+    pub(crate) detections_right: Vec<Detection>,
+    pub(crate) points: Vec<MatchedPoint>,
+    pub(crate) causal_vectors: Vec<VelocityVector>,
     /// The centred vectors and the frame they describe.
-    pub refined: Option<(u64, f64, Vec<VelocityVector>)>,
-    pub stats: FrameStats,
-    pub processing_ms: f64,
+    pub(crate) refined: Option<(u64, f64, Vec<VelocityVector>)>,
+    pub(crate) stats: FrameStats,
+    pub(crate) processing_ms: f64,
     /// Frame received -> its causal vectors sent (live only).
-    pub latency_ms: Option<f64>,
+    pub(crate) latency_ms: Option<f64>,
     /// Left and right pixels, when this frame's images are logged.
-    pub images: Option<ImagePair>,
+    pub(crate) images: Option<ImagePair>,
 }
 
 /// What the logging thread is handed.
@@ -201,7 +201,10 @@ enum Entry {
 
 impl FrameLog {
     /// Everything but timing and images, copied from a pipeline output.
-    pub fn from_output(output: &FrameOutput, world_from_rig: Option<Isometry3<f64>>) -> Self {
+    pub(crate) fn from_output(
+        output: &FrameOutput,
+        world_from_rig: Option<Isometry3<f64>>,
+    ) -> Self {
         Self {
             frame_index: output.frame_index,
             t_s: output.t_s,
@@ -226,14 +229,14 @@ pub struct RerunSummary {
     /// Every sink took everything (a viewer that never answered makes this false).
     pub flushed: bool,
     /// Frames dropped because the logging thread was behind.
-    pub frames_dropped: u64,
+    pub(crate) frames_dropped: u64,
     pub errors: u64,
 }
 
 /// Field cells with fewer samples than this are drawn faded: their mean is still noisy.
-pub const FIELD_FULL_SAMPLES: usize = 20;
+pub(crate) const FIELD_FULL_SAMPLES: usize = 20;
 
-/// A running logger: hand it frames with [`RerunLogger::log`], close it with
+/// A running logger: hand it frames with `log`, close it with
 /// [`RerunLogger::finish`] (which completes the `.rrd` files).
 pub struct RerunLogger {
     frames: Option<SyncSender<Entry>>,
@@ -316,12 +319,12 @@ impl RerunLogger {
     }
 
     /// Whether this frame's images should be attached.
-    pub fn wants_images(&self, frame_number: u64) -> bool {
+    pub(crate) fn wants_images(&self, frame_number: u64) -> bool {
         self.images_every > 0 && frame_number.is_multiple_of(self.images_every)
     }
 
     /// Queues a frame, waiting for room: offline runs log every frame.
-    pub fn log_all(&self, frame: FrameLog) {
+    pub(crate) fn log_all(&self, frame: FrameLog) {
         self.send_waiting(Entry::Frame(Box::new(frame)));
     }
 
@@ -333,7 +336,7 @@ impl RerunLogger {
 
     /// Queues a frame; never waits (live sessions). A frame the logging thread has no room for
     /// is dropped.
-    pub fn log(&self, frame: FrameLog) {
+    pub(crate) fn log(&self, frame: FrameLog) {
         self.send_or_drop(Entry::Frame(Box::new(frame)));
     }
 

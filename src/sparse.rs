@@ -17,17 +17,17 @@
 
 /// Encoder settings; the receiver needs none of them.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SparseParams {
+pub(crate) struct SparseParams {
     /// Side of the square blocks the background is sent by, pixels.
-    pub block_px: u8,
+    pub(crate) block_px: u8,
     /// A pixel is kept (with its surroundings) where the mean of its 3x3 neighbourhood stands
     /// this many grey levels above the background. The detector's own threshold is 6 above the
     /// local mean of the blurred image (`detect.contrast_c`); the 3x3 mean cuts sensor noise by
     /// three, so 4 keeps every pixel the detector can find without keeping noise.
-    pub threshold: u8,
+    pub(crate) threshold: u8,
     /// Kept pixels are grown by this many pixels each way, so a particle's rim and the detector's
     /// 5x5 blur around it arrive exact.
-    pub margin_px: u8,
+    pub(crate) margin_px: u8,
 }
 
 impl Default for SparseParams {
@@ -50,7 +50,12 @@ fn blocks(width: usize, height: usize, block_px: usize) -> (usize, usize) {
 /// Fills an image with the background given per block: bilinear between block centres,
 /// constant beyond the outer centres. Encoder and decoder share it, so the encoder judges
 /// pixels against the background the receiver will see.
-pub fn paint_background(levels: &[u8], width: usize, height: usize, block_px: usize) -> Vec<u8> {
+pub(crate) fn paint_background(
+    levels: &[u8],
+    width: usize,
+    height: usize,
+    block_px: usize,
+) -> Vec<u8> {
     let (bw, bh) = blocks(width, height, block_px);
     // Per axis: for each pixel, the two block indices and the weight of the second.
     let axis = |n: usize, blocks: usize| -> Vec<(usize, usize, f32)> {
@@ -186,7 +191,7 @@ fn sums_3x3(pixels: &[u8], width: usize, height: usize) -> Vec<u16> {
 }
 
 /// Encodes one 8-bit grayscale image (`width * height` bytes, row-major).
-pub fn encode(pixels: &[u8], width: u32, height: u32, params: &SparseParams) -> Vec<u8> {
+pub(crate) fn encode(pixels: &[u8], width: u32, height: u32, params: &SparseParams) -> Vec<u8> {
     let (w, h) = (width as usize, height as usize);
     debug_assert_eq!(pixels.len(), w * h);
     let block = usize::from(params.block_px.max(1));
@@ -231,7 +236,7 @@ pub fn encode(pixels: &[u8], width: u32, height: u32, params: &SparseParams) -> 
 }
 
 /// Decodes one image of a known size; the error says what is wrong.
-pub fn decode(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+pub(crate) fn decode(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
     let (w, h) = (width as usize, height as usize);
     if bytes.len() < HEADER_BYTES {
         return Err(format!(

@@ -14,13 +14,14 @@ use mrptv_engine::geometry::isometry_to_row_major;
 use mrptv_engine::synth::TruthRow;
 use mrptv_engine::{MatchedPoint, VelocityVector};
 
-pub const FRAMES_HEADER: &str = "index,t_s";
-pub const TRUTH_HEADER: &str = "frame,t_s,pid,x,y,z,u,v,w";
-pub const TRACKS_HEADER: &str = "frame,t_s,track_id,x,y,z,u,v,w";
+pub(crate) const FRAMES_HEADER: &str = "index,t_s";
+pub(crate) const TRUTH_HEADER: &str = "frame,t_s,pid,x,y,z,u,v,w";
+pub(crate) const TRACKS_HEADER: &str = "frame,t_s,track_id,x,y,z,u,v,w";
 /// `tracks.csv` as written since vectors carry their uncertainty: `TRACKS_HEADER` and the 1-sigma
 /// errors of velocity (m/s) and position (m) appended.
-pub const TRACKS_HEADER_WITH_SIGMA: &str = "frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz";
-pub const POINTS_HEADER: &str = "frame,t_s,x,y,z,xl,yl,xr,yr";
+pub(crate) const TRACKS_HEADER_WITH_SIGMA: &str =
+    "frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz";
+pub(crate) const POINTS_HEADER: &str = "frame,t_s,x,y,z,xl,yl,xr,yr";
 
 /// `frames.csv` header with the 16 optional pose columns.
 pub fn frames_header_with_pose() -> String {
@@ -58,13 +59,13 @@ pub enum TableError {
 
 /// A data row with the line it came from (1-based, header is line 1).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Row {
-    pub line: usize,
-    pub values: Vec<f64>,
+pub(crate) struct Row {
+    pub(crate) line: usize,
+    pub(crate) values: Vec<f64>,
 }
 
 /// Reads a numeric CSV whose header must equal one of `headers`; returns which one and the rows.
-pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
+pub(crate) fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
     let file = std::fs::File::open(path).map_err(|error| TableError::Io {
         path: path.to_path_buf(),
         error,
@@ -73,7 +74,7 @@ pub fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), 
 }
 
 /// [`read_numeric`] of text from anywhere; `path` names it in errors.
-pub fn parse_numeric(
+pub(crate) fn parse_numeric(
     path: &Path,
     text: impl BufRead,
     headers: &[&str],
@@ -146,7 +147,7 @@ pub fn parse_numeric(
 }
 
 /// A non-negative whole number from a numeric field.
-pub fn whole(path: &Path, row: &Row, column: usize, name: &str) -> Result<u64, TableError> {
+pub(crate) fn whole(path: &Path, row: &Row, column: usize, name: &str) -> Result<u64, TableError> {
     let v = row.values[column];
     if v >= 0.0 && v.fract() == 0.0 && v <= 9.007_199_254_740_992e15 {
         Ok(v as u64)
@@ -212,7 +213,10 @@ fn track_rows(path: &Path, rows: &[Row]) -> Result<Vec<TrackRow>, TableError> {
 
 // Writers use Rust's shortest round-trip float formatting: exact and deterministic.
 
-pub fn write_truth_row(out: &mut (impl Write + ?Sized), r: &TruthRow) -> std::io::Result<()> {
+pub(crate) fn write_truth_row(
+    out: &mut (impl Write + ?Sized),
+    r: &TruthRow,
+) -> std::io::Result<()> {
     let (p, v) = (r.position, r.velocity);
     writeln!(
         out,
@@ -222,7 +226,10 @@ pub fn write_truth_row(out: &mut (impl Write + ?Sized), r: &TruthRow) -> std::io
 }
 
 /// A `tracks.csv` row under `TRACKS_HEADER_WITH_SIGMA`.
-pub fn write_track_row(out: &mut (impl Write + ?Sized), v: &VelocityVector) -> std::io::Result<()> {
+pub(crate) fn write_track_row(
+    out: &mut (impl Write + ?Sized),
+    v: &VelocityVector,
+) -> std::io::Result<()> {
     let (p, u) = (v.position_in_world, v.velocity_in_world);
     let (su, sp) = (v.velocity_sigma, v.position_sigma);
     writeln!(
@@ -258,7 +265,7 @@ pub fn write_field(out: &mut (impl Write + ?Sized), cells: &[CellSummary]) -> st
     Ok(())
 }
 
-pub fn write_point_row(
+pub(crate) fn write_point_row(
     out: &mut (impl Write + ?Sized),
     frame: u64,
     t_s: f64,
@@ -272,7 +279,7 @@ pub fn write_point_row(
     )
 }
 
-pub fn format_frame_row(
+pub(crate) fn format_frame_row(
     index: u64,
     t_s: f64,
     world_from_rig: Option<&nalgebra::Isometry3<f64>>,

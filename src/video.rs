@@ -1,7 +1,7 @@
 //! H.264 for hl2ss's compressed visible-light streams (`mrptv hl2ss --codec h264`) and for
 //! measuring what a bitrate costs (`mrptv demo --h264-mbps`): 8-bit grayscale frames in and out
 //! of Annex-B access units, through Cisco's OpenH264. hl2ss encodes the VLC image as the luma of
-//! an NV12 frame with neutral chroma; so does [`H264Encoder`], and [`H264Decoder`] returns the
+//! an NV12 frame with neutral chroma; so does [`H264Encoder`], and `H264Decoder` returns the
 //! luma.
 
 use openh264::decoder::Decoder;
@@ -86,14 +86,14 @@ impl H264Encoder {
 }
 
 /// Decodes an H.264 stream access unit by access unit, into grayscale frames of a known size.
-pub struct H264Decoder {
+pub(crate) struct H264Decoder {
     decoder: Decoder,
     width: usize,
     height: usize,
 }
 
 impl H264Decoder {
-    pub fn new(width: u32, height: u32) -> Result<Self, VideoError> {
+    pub(crate) fn new(width: u32, height: u32) -> Result<Self, VideoError> {
         Ok(Self {
             decoder: Decoder::new().map_err(|e| VideoError::Decoder(e.to_string()))?,
             width: width as usize,
@@ -103,7 +103,7 @@ impl H264Decoder {
 
     /// The picture of one access unit; `None` while the stream has given none yet (it must
     /// start with an IDR and its parameter sets, as hl2ss's does on connecting).
-    pub fn decode(&mut self, access_unit: &[u8]) -> Result<Option<Vec<u8>>, VideoError> {
+    pub(crate) fn decode(&mut self, access_unit: &[u8]) -> Result<Option<Vec<u8>>, VideoError> {
         let Some(yuv) = self
             .decoder
             .decode(access_unit)

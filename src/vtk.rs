@@ -33,14 +33,14 @@ impl VtkFormat {
 
 /// A per-point array: `components` values per point, point after point.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PointArray {
-    pub name: &'static str,
-    pub components: usize,
-    pub values: Vec<f64>,
+pub(crate) struct PointArray {
+    pub(crate) name: &'static str,
+    pub(crate) components: usize,
+    pub(crate) values: Vec<f64>,
 }
 
 impl PointArray {
-    pub fn new(name: &'static str, components: usize) -> Self {
+    pub(crate) fn new(name: &'static str, components: usize) -> Self {
         Self {
             name,
             components,
@@ -64,7 +64,7 @@ pub enum VtkError {
 
 /// Writes `points` with their `arrays`; the array named `vectors` (if any) is marked as the
 /// points' vectors, so ParaView's glyphs use it by default.
-pub fn write_points(
+pub(crate) fn write_points(
     out: &mut impl Write,
     format: VtkFormat,
     title: &str,

@@ -1,13 +1,129 @@
-//! Flags that more than one command takes, declared once: the secrets a client presents, and
-//! `serve`'s access control, limits and TLS.
+//! Flags that more than one command takes, declared once each: a group is a `clap::Args` struct
+//! that a command flattens in where its flags stand in its help. Where commands word a flag
+//! differently, the command rewords it (`mut_arg`); its name, type, value name and parsing stay
+//! here. Also `serve`'s access control, limits and TLS.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::{bail, Result};
 
+use mrptv::protocol::Encoding;
+use mrptv::rerun_log::RerunSink;
 use mrptv::server::{self, ServerOptions};
 use mrptv::tls::{CertificateOrigin, CertificateSource, ServerTls};
+use mrptv_engine::synth::ScenarioSpec;
+use mrptv_engine::PipelineConfig;
+
+/// `--config`: a TOML processing config.
+#[derive(clap::Args)]
+pub struct ConfigFile {
+    /// TOML config [default: REC/mrptv.toml if present, else built-in defaults].
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+impl ConfigFile {
+    /// The file `--config` names, else the recording's own `REC/mrptv.toml` where it has one.
+    pub fn or_in_recording(&self, rec: &Path) -> Option<PathBuf> {
+        let suggested = rec.join("mrptv.toml");
+        match &self.config {
+            Some(path) => Some(path.clone()),
+            None if suggested.is_file() => Some(suggested),
+            None => None,
+        }
+    }
+}
+
+/// `--method` and `--depth-range`: the base config's choices and the measurement volume.
+#[derive(clap::Args)]
+pub struct ConfigChoices {
+    /// Use the published method's choices (no mrptv improvements) as the base config.
+    #[arg(long)]
+    pub method: bool,
+    /// The measurement volume's depths, metres along the cameras' common viewing direction:
+    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
+    #[arg(long, value_name = "NEAR..FAR")]
+    pub depth_range: Option<DepthRange>,
+}
+
+impl ConfigChoices {
+    /// `config` as these flags change it: with `--method` the published method's choices
+    /// (keeping `config`'s scale parameters), then the `--depth-range` volume.
+    pub fn apply(self, config: PipelineConfig) -> PipelineConfig {
+        let mut config = if self.method {
+            method_config(&config)
+        } else {
+            config
+        };
+        DepthRange::apply(self.depth_range, &mut config);
+        config
+    }
+}
+
+/// The published method's choices, keeping a scenario's scale parameters (M, H, contrast).
+fn method_config(base: &PipelineConfig) -> PipelineConfig {
+    let mut c = PipelineConfig::method();
+    c.velocity.half_window_frames = base.velocity.half_window_frames;
+    c.link.box_half_side_px = base.link.box_half_side_px;
+    c.detect.contrast_c = base.detect.contrast_c;
+    c
+}
+
+/// `--rerun` and `--rerun-images-every`: where a run is logged to Rerun, and how often with
+/// its images.
+#[derive(clap::Args)]
+pub struct RerunArgs {
+    /// Log the run to Rerun: file:RUN.rrd, connect (a viewer on this machine) or
+    /// connect:URL. Repeat for several.
+    #[arg(long, value_name = "SINK")]
+    pub rerun: Vec<RerunSink>,
+    /// With --rerun: log the camera images every N frames (0: never).
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    pub rerun_images_every: u64,
+}
+
+/// `--frames`, `--particles` and `--seed` of a synthetic scenario.
+#[derive(clap::Args)]
+pub struct SceneSize {
+    /// Number of frames [default: the scenario's].
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Number of particles in the domain [default: the scenario's].
+    #[arg(long)]
+    particles: Option<usize>,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+impl SceneSize {
+    /// Frames and particles: as given, else the scenario's.
+    pub fn of(&self, spec: &ScenarioSpec) -> Result<(usize, usize)> {
+        let frames = self.frames.unwrap_or(spec.default_frames);
+        let particles = self.particles.unwrap_or(spec.default_particles);
+        if frames == 0 {
+            bail!("--frames must be at least 1");
+        }
+        Ok((frames, particles))
+    }
+}
+
+/// `--encoding`: how images travel as a headset sends them.
+#[derive(clap::Args)]
+pub struct WireEncoding {
+    /// Image encoding on the wire: raw8, png (the recording's files, sent as they are) or sparse
+    /// (particles exact, background coarse: what a headset's Wi-Fi carries).
+    #[arg(long, default_value = "raw8")]
+    pub encoding: Encoding,
+}
+
+/// `--url`: the server endpoint a headset client (`replay`, `hl2ss`) streams to.
+#[derive(clap::Args)]
+pub struct IngestUrl {
+    #[arg(long, default_value = "ws://127.0.0.1:8770/v1/ingest")]
+    pub url: String,
+}
 
 /// The ingest secret a headset client (`replay`, `hl2ss`) presents.
 #[derive(clap::Args)]
@@ -20,6 +136,63 @@ pub struct IngestSecret {
         value_name = "SECRET"
     )]
     pub secret: Option<String>,
+}
+
+/// `--ca-cert`: what a client trusts beyond the public web roots.
+#[derive(clap::Args)]
+pub struct CaCert {
+    /// For wss:// URLs: also trust the certificates in this PEM file (e.g. a server's
+    /// self-signed cert.pem); the public web roots are always trusted.
+    #[arg(long, value_name = "PEM")]
+    ca_cert: Option<PathBuf>,
+}
+
+impl CaCert {
+    /// A client TLS configuration for wss:// URLs that also trusts the `--ca-cert` certificates.
+    pub fn client_tls(&self) -> Result<Option<Arc<rustls::ClientConfig>>> {
+        Ok(match &self.ca_cert {
+            Some(path) => Some(mrptv::tls::client_config(Some(path))?),
+            None => None,
+        })
+    }
+}
+
+/// `--watch-secret`: the secret viewers present (`serve` asks it, `hl2ss` presents it).
+#[derive(clap::Args)]
+pub struct WatchSecret {
+    /// Secret viewers (the observer page: ?token=SECRET) and /v1/sessions must present.
+    #[arg(
+        long,
+        env = "MRPTV_WATCH_SECRET",
+        hide_env_values = true,
+        value_name = "SECRET"
+    )]
+    pub watch_secret: Option<String>,
+}
+
+/// `--headsets`: how many headsets stream at once (`replay`, `load`).
+#[derive(clap::Args)]
+pub struct Headsets {
+    /// Headsets streaming at once.
+    #[arg(long, default_value_t = 1)]
+    headsets: usize,
+}
+
+impl Headsets {
+    pub fn count(&self) -> Result<usize> {
+        if self.headsets == 0 {
+            bail!("--headsets must be at least 1");
+        }
+        Ok(self.headsets)
+    }
+}
+
+/// `--json`: a machine-readable summary instead of text.
+#[derive(clap::Args)]
+pub struct JsonOutput {
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Access control and limits of `serve` (defaults: `ServerOptions::default()`).
@@ -35,14 +208,8 @@ pub struct GuardArgs {
         value_name = "SECRET"
     )]
     pub ingest_secret: Option<String>,
-    /// Secret viewers (the observer page: ?token=SECRET) and /v1/sessions must present.
-    #[arg(
-        long,
-        env = "MRPTV_WATCH_SECRET",
-        hide_env_values = true,
-        value_name = "SECRET"
-    )]
-    pub watch_secret: Option<String>,
+    #[command(flatten)]
+    pub watch_secret: WatchSecret,
     /// Connections open at once; more are closed on accept.
     #[arg(long, default_value_t = ServerOptions::default().max_connections, value_name = "N")]
     max_connections: usize,
@@ -92,7 +259,7 @@ impl GuardArgs {
         }
         options.access = server::access::AccessControl::new(
             self.ingest_secret.as_deref(),
-            self.watch_secret.as_deref(),
+            self.watch_secret.watch_secret.as_deref(),
         )?;
         options.max_connections = self.max_connections;
         options.max_sessions = self.max_sessions;

@@ -3,34 +3,33 @@
 use anyhow::{bail, Result};
 
 use mrptv::offline::{self, Wire};
-use mrptv::protocol::Encoding;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv_engine::PipelineConfig;
 
-use super::args::DepthRange;
+use super::args::{ConfigChoices, DepthRange, SceneSize, WireEncoding};
 use super::progress_bar;
 
+// `demo --help` lists the scene's size without a description: the scenarios below it say what
+// each defaults to.
 #[derive(clap::Args)]
+#[command(
+    mut_arg("frames", |a| a.help(None::<&str>)),
+    mut_arg("particles", |a| a.help(None::<&str>)),
+    mut_arg("method", |a| a.help("Use the published method's choices instead of mrptv's defaults")),
+    mut_arg("encoding", |a| a.help(
+        "Send the images through a frame encoding first (raw8, png, sparse), as a headset \
+         would, and report its bandwidth and coding time next to the accuracy it gives"
+    )),
+)]
 pub struct Args {
     #[arg(default_value = "flume")]
     scenario: Scenario,
-    #[arg(long)]
-    frames: Option<usize>,
-    #[arg(long)]
-    particles: Option<usize>,
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    /// Use the published method's choices instead of mrptv's defaults.
-    #[arg(long)]
-    method: bool,
-    /// The measurement volume's depths, metres along the cameras' common viewing direction:
-    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
-    #[arg(long, value_name = "NEAR..FAR")]
-    depth_range: Option<DepthRange>,
-    /// Send the images through a frame encoding first (raw8, png, sparse), as a headset would,
-    /// and report its bandwidth and coding time next to the accuracy it gives.
-    #[arg(long, default_value = "raw8")]
-    encoding: Encoding,
+    #[command(flatten)]
+    size: SceneSize,
+    #[command(flatten)]
+    choices: ConfigChoices,
+    #[command(flatten)]
+    encoding: WireEncoding,
     /// Send the images as hl2ss's H.264 streams at this many Mbit/s a camera (one IDR a
     /// second) instead, as `mrptv hl2ss --codec h264 --bitrate-mbps` receives them.
     #[arg(long, value_name = "MBIT_PER_S", conflicts_with = "encoding")]
@@ -40,12 +39,12 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let Args {
         scenario,
-        frames,
-        particles,
-        seed,
-        method,
-        depth_range,
-        encoding,
+        size,
+        choices: ConfigChoices {
+            method,
+            depth_range,
+        },
+        encoding: WireEncoding { encoding },
         h264_mbps,
     } = args;
     let wire = match h264_mbps {
@@ -56,17 +55,16 @@ pub fn run(args: Args) -> Result<()> {
         None => Wire::Frames(encoding),
     };
     let spec = ScenarioSpec::new(scenario);
-    let frames = frames.unwrap_or(spec.default_frames);
-    let particles = particles.unwrap_or(spec.default_particles);
+    let (frames, particles) = size.of(&spec)?;
+    let seed = size.seed;
+    // `--method`: the published method as it stands (`ConfigChoices::apply` would keep the
+    // defaults' scale parameters).
     let mut config = if method {
         PipelineConfig::method()
     } else {
         PipelineConfig::default()
     };
     DepthRange::apply(depth_range, &mut config);
-    if frames == 0 {
-        bail!("--frames must be at least 1");
-    }
     println!("scenario '{scenario}': {}", scenario.description());
     println!(
         "{frames} frames, {particles} particles, seed {seed}, {} config",

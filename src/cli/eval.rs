@@ -7,7 +7,10 @@ use anyhow::{bail, Result};
 use mrptv::tables;
 use mrptv_engine::eval::{evaluate, EvalOptions};
 
+use super::args::JsonOutput;
+
 #[derive(clap::Args)]
+#[command(mut_arg("json", |a| a.help("Machine-readable output")))]
 pub struct Args {
     truth: PathBuf,
     tracks: PathBuf,
@@ -20,9 +23,8 @@ pub struct Args {
     /// M of the velocity window, for the measurable yield (particles living +-M frames).
     #[arg(long, default_value_t = 0)]
     window: u64,
-    /// Machine-readable output.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    output: JsonOutput,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -41,7 +43,7 @@ pub fn run(args: Args) -> Result<()> {
             ..Default::default()
         },
     )?;
-    if args.json {
+    if args.output.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print!("{report}");

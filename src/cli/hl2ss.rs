@@ -11,11 +11,18 @@ use mrptv::hl2ss::holograms::{self, HologramContent, Painter};
 use mrptv::hl2ss::VlcCodec;
 use mrptv::protocol::Convention;
 
-use super::args::IngestSecret;
+use super::args::{CaCert, IngestSecret, IngestUrl, JsonOutput, WatchSecret};
 use super::replay::{print_replay, write_batches};
-use super::{client_tls, init_logging, runtime, termination};
+use super::{init_logging, runtime, termination};
 
 #[derive(clap::Args)]
+#[command(
+    mut_arg("url", |a| a.help("The mrptv server's headset endpoint")),
+    mut_arg("ca_cert", |a| a.help("For wss:// URLs: also trust the certificates in this PEM file")),
+    mut_arg("watch_secret", |a| a.help(
+        "With --holograms, the server's watch secret (vectors are followed as a viewer)"
+    )),
+)]
 pub struct Args {
     /// The HoloLens's address.
     #[arg(long)]
@@ -26,9 +33,8 @@ pub struct Args {
     /// hl2ss's RightFront visible-light camera port.
     #[arg(long, default_value_t = mrptv::hl2ss::RIGHT_FRONT_PORT)]
     right_port: u16,
-    /// The mrptv server's headset endpoint.
-    #[arg(long, default_value = "ws://127.0.0.1:8770/v1/ingest")]
-    url: String,
+    #[command(flatten)]
+    url: IngestUrl,
     /// Left and right frames further apart than this are not a pair, milliseconds.
     #[arg(long, default_value_t = 5.0)]
     pair_tolerance_ms: f64,
@@ -40,9 +46,8 @@ pub struct Args {
     out: Option<PathBuf>,
     #[command(flatten)]
     secret: IngestSecret,
-    /// For wss:// URLs: also trust the certificates in this PEM file.
-    #[arg(long, value_name = "PEM")]
-    ca_cert: Option<PathBuf>,
+    #[command(flatten)]
+    ca_cert: CaCert,
     /// Draw in the wearer's view through hl2ss's Unity plugin (its message queue must be
     /// running: the hl2ss Unity app, not the plain one): the live vectors, or with
     /// `--holograms field` the session's mean-flow field (an arrow per grid cell).
@@ -57,17 +62,10 @@ pub struct Args {
     /// Arrows in the wearer's view, at most (created once, then reused).
     #[arg(long, default_value_t = 150)]
     hologram_arrows: usize,
-    /// With --holograms, the server's watch secret (vectors are followed as a viewer).
-    #[arg(
-        long,
-        env = "MRPTV_WATCH_SECRET",
-        hide_env_values = true,
-        value_name = "SECRET"
-    )]
-    watch_secret: Option<String>,
-    /// Print the summary as JSON.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    watch_secret: WatchSecret,
+    #[command(flatten)]
+    output: JsonOutput,
     /// How hl2ss sends the images: raw (uncompressed, 74 Mbit/s a camera: a wired or very good
     /// link) or h264 (compressed on the HoloLens: Wi-Fi). hevc, hl2ss's own default, is refused:
     /// this build has no HEVC decoder.
@@ -142,13 +140,13 @@ pub fn run(args: Args) -> Result<()> {
         rate: Rate::Max,
         max_in_flight: 2,
         keep_batches: args.out.is_some(),
-        tls: client_tls(args.ca_cert.as_deref())?,
+        tls: args.ca_cert.client_tls()?,
         secret: args.secret.secret,
-        ..ReplayOptions::new(args.url.clone())
+        ..ReplayOptions::new(args.url.url.clone())
     };
     let painter = painter.map(|p| (p, args.holograms.unwrap_or_default()));
-    let (report, painted) = stream(source, &options, painter, args.watch_secret)?;
-    let report = report.with_context(|| format!("streaming to {}", args.url))?;
+    let (report, painted) = stream(source, &options, painter, args.watch_secret.watch_secret)?;
+    let report = report.with_context(|| format!("streaming to {}", args.url.url))?;
     let painted = match painted {
         Some(Ok(p)) => Some((p.updates, p.refused)),
         Some(Err(e)) => {
@@ -161,7 +159,7 @@ pub fn run(args: Args) -> Result<()> {
         write_batches(path, &report.refined)?;
     }
     let bridge = *counters.lock().unwrap_or_else(|p| p.into_inner());
-    print_summary(&bridge, report, painted, args.json)
+    print_summary(&bridge, report, painted, args.output.json)
 }
 
 type Streamed = (

@@ -7,13 +7,14 @@ use mrptv::client::Rate;
 use mrptv::load::LoadReport;
 use mrptv_engine::synth::Scenario;
 
+use super::args::{Headsets, JsonOutput};
 use super::{init_logging, runtime};
 
 #[derive(clap::Args)]
+#[command(mut_arg("json", |a| a.help("Print the report as JSON")))]
 pub struct Args {
-    /// Headsets streaming at once.
-    #[arg(long, default_value_t = 1)]
-    headsets: usize,
+    #[command(flatten)]
+    headsets: Headsets,
     /// Viewers subscribed to every session.
     #[arg(long, default_value_t = 0)]
     viewers: usize,
@@ -29,25 +30,22 @@ pub struct Args {
     /// Scenario the headsets stream.
     #[arg(long, default_value = "flume")]
     scenario: Scenario,
-    /// Print the report as JSON.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    output: JsonOutput,
     /// Further `serve` arguments, after `--` (e.g. -- --record DIR).
     #[arg(last = true)]
     serve_args: Vec<String>,
 }
 
 pub fn run(args: Args) -> Result<()> {
-    if args.headsets == 0 {
-        bail!("--headsets must be at least 1");
-    }
+    let headsets = args.headsets.count()?;
     let seconds = args.seconds;
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
         bail!("--seconds must be between 0 and 86400, not {seconds}");
     }
     init_logging("warn");
     let options = mrptv::load::LoadOptions {
-        headsets: args.headsets,
+        headsets,
         viewers: args.viewers,
         duration: std::time::Duration::from_secs_f64(seconds),
         frames_per_headset: args.frames,
@@ -69,7 +67,7 @@ pub fn run(args: Args) -> Result<()> {
         bar.set_message(format!("{sent} frames"));
     }))?;
     bar.finish_and_clear();
-    if args.json {
+    if args.output.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
         print_load(&report);

@@ -22,7 +22,6 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use mrptv_engine::synth::Scenario;
-use mrptv_engine::PipelineConfig;
 
 /// The scenario list shown below `synth --help` and `demo --help`.
 pub fn scenario_help() -> String {
@@ -105,21 +104,4 @@ fn print_health(health: &mrptv::offline::RunHealth) {
     for warning in &health.warnings {
         eprintln!("warning: {warning}");
     }
-}
-
-/// The published method's choices, keeping a scenario's scale parameters (M, H, contrast).
-fn method_config(base: &PipelineConfig) -> PipelineConfig {
-    let mut c = PipelineConfig::method();
-    c.velocity.half_window_frames = base.velocity.half_window_frames;
-    c.link.box_half_side_px = base.link.box_half_side_px;
-    c.detect.contrast_c = base.detect.contrast_c;
-    c
-}
-
-/// A client TLS configuration for wss:// URLs that also trusts the certificates in `ca_cert`.
-fn client_tls(ca_cert: Option<&Path>) -> Result<Option<std::sync::Arc<rustls::ClientConfig>>> {
-    Ok(match ca_cert {
-        Some(path) => Some(mrptv::tls::client_config(Some(path))?),
-        None => None,
-    })
 }

@@ -13,8 +13,8 @@ use mrptv::vtk::{self, VtkFormat};
 use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
 use mrptv_engine::PipelineConfig;
 
-use super::args::DepthRange;
-use super::{create_output, method_config, progress_bar, runtime, termination};
+use super::args::{ConfigChoices, ConfigFile, RerunArgs};
+use super::{create_output, progress_bar, runtime, termination};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -35,23 +35,12 @@ pub struct Args {
     /// Also write every stereo-matched particle: frame,t_s,x,y,z,xl,yl,xr,yr.
     #[arg(long)]
     points: Option<PathBuf>,
-    /// TOML config [default: REC/mrptv.toml if present, else built-in defaults].
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Use the published method's choices (no mrptv improvements) as the base config.
-    #[arg(long)]
-    method: bool,
-    /// The measurement volume's depths, metres along the cameras' common viewing direction:
-    /// NEAR..FAR (FAR may be inf) [default: every depth both cameras see].
-    #[arg(long, value_name = "NEAR..FAR")]
-    depth_range: Option<DepthRange>,
-    /// Log the run to Rerun: file:RUN.rrd, connect (a viewer on this machine) or
-    /// connect:URL. Repeat for several.
-    #[arg(long, value_name = "SINK")]
-    rerun: Vec<RerunSink>,
-    /// With --rerun: log the camera images every N frames (0: never).
-    #[arg(long, default_value_t = 10, value_name = "N")]
-    rerun_images_every: u64,
+    #[command(flatten)]
+    config: ConfigFile,
+    #[command(flatten)]
+    choices: ConfigChoices,
+    #[command(flatten)]
+    rerun: RerunArgs,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -62,14 +51,14 @@ pub fn run(args: Args) -> Result<()> {
         field_cell,
         points,
         config,
-        method,
-        depth_range,
-        mut rerun,
-        rerun_images_every,
+        choices,
+        rerun: RerunArgs {
+            mut rerun,
+            rerun_images_every,
+        },
     } = args;
     let recording = Recording::open(&rec)?;
-    let mut config = load_config(&rec, config.as_deref(), method)?;
-    DepthRange::apply(depth_range, &mut config);
+    let config = choices.apply(load_config(&rec, &config)?);
     if let Some(cell) = field_cell {
         FieldGrid::new(cell, None)?;
     }
@@ -81,19 +70,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let mut tracks_text = Vec::new();
     let proxy = start_proxy(&mut rerun)?;
-    let logger = if rerun.is_empty() {
-        None
-    } else {
-        let options = RerunOptions {
-            images_every: rerun_images_every,
-            ..Default::default()
-        };
-        let name = rec.file_name().map_or_else(
-            || rec.display().to_string(),
-            |n| n.to_string_lossy().into_owned(),
-        );
-        Some(RerunLogger::start(&name, &rerun, &recording.rig, &options)?)
-    };
+    let logger = start_logger(&rec, &recording, &rerun, rerun_images_every)?;
     let mut points_file = points.as_deref().map(create_output).transpose()?;
     let bar = progress_bar(recording.frames.len(), "process");
     let totals = offline::process_recording(
@@ -141,6 +118,46 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(logger) = logger {
         report_rerun(logger, &rerun);
     }
+    print_totals(&totals, &out);
+    super::print_health(&totals.health(&config));
+    if let Some(proxy) = proxy {
+        println!(
+            "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",
+            proxy.url()
+        );
+        runtime()?.block_on(termination());
+    }
+    Ok(())
+}
+
+/// The Rerun logger of the run, named after the recording; `None` without sinks.
+fn start_logger(
+    rec: &Path,
+    recording: &Recording,
+    sinks: &[RerunSink],
+    images_every: u64,
+) -> Result<Option<RerunLogger>> {
+    if sinks.is_empty() {
+        return Ok(None);
+    }
+    let options = RerunOptions {
+        images_every,
+        ..Default::default()
+    };
+    let name = rec.file_name().map_or_else(
+        || rec.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    Ok(Some(RerunLogger::start(
+        &name,
+        sinks,
+        &recording.rig,
+        &options,
+    )?))
+}
+
+/// What the run found, on stderr.
+fn print_totals(totals: &offline::RunTotals, out: &Path) {
     eprintln!(
         "{} frames: {:.1} detections/image, {:.1} matches/frame, {} vectors ({} rejected as rough, {} as straying from their neighbours, {} as no measurement: outside the volume or impossibly fast) -> {}; pipeline {:.1} frames/s",
         totals.frames,
@@ -153,15 +170,6 @@ pub fn run(args: Args) -> Result<()> {
         out.display(),
         totals.frames as f64 / totals.pipeline_s.max(1e-9)
     );
-    super::print_health(&totals.health(&config));
-    if let Some(proxy) = proxy {
-        println!(
-            "serving the Rerun log: rerun --connect {}   (Ctrl-C to stop)",
-            proxy.url()
-        );
-        runtime()?.block_on(termination());
-    }
-    Ok(())
 }
 
 /// Bins the vectors on a grid of `cell_m` (or the default for their volume) and writes the
@@ -220,19 +228,15 @@ fn report_rerun(logger: RerunLogger, sinks: &[RerunSink]) {
     );
 }
 
-fn load_config(rec: &Path, explicit: Option<&Path>, method: bool) -> Result<PipelineConfig> {
-    let suggested = rec.join("mrptv.toml");
-    let config = match explicit {
-        Some(path) => mrptv::config::load(path)?,
-        None if suggested.is_file() => {
-            eprintln!("using {}", suggested.display());
-            mrptv::config::load(&suggested)?
+/// The config `--config` names, else the recording's own (said on stderr), else the defaults.
+fn load_config(rec: &Path, file: &ConfigFile) -> Result<PipelineConfig> {
+    match file.or_in_recording(rec) {
+        Some(path) => {
+            if file.config.is_none() {
+                eprintln!("using {}", path.display());
+            }
+            Ok(mrptv::config::load(&path)?)
         }
-        None => PipelineConfig::default(),
-    };
-    Ok(if method {
-        method_config(&config)
-    } else {
-        config
-    })
+        None => Ok(PipelineConfig::default()),
+    }
 }

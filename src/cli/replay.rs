@@ -3,21 +3,31 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 
 use mrptv::client::{self, Rate, RecordingSource, ReplayOptions, ReplayReport};
-use mrptv::protocol::{Convention, Encoding};
+use mrptv::protocol::Convention;
 use mrptv::recording::Recording;
 
-use super::args::IngestSecret;
-use super::{client_tls, create_output, init_logging, progress_bar, runtime, termination};
+use super::args::{
+    CaCert, ConfigFile, Headsets, IngestSecret, IngestUrl, JsonOutput, WireEncoding,
+};
+use super::{create_output, init_logging, progress_bar, runtime, termination};
 
 #[derive(clap::Args)]
+#[command(
+    mut_arg("config", |a| a.help(
+        "TOML config to ask for [default: REC/mrptv.toml if present, else the server's]"
+    )),
+    mut_arg("headsets", |a| a.help(
+        "Run this many headsets at once, each streaming the recording on its own connection"
+    )),
+)]
 pub struct Args {
     /// Recording directory (rig.json, frames.csv, left/, right/).
     rec: PathBuf,
-    #[arg(long, default_value = "ws://127.0.0.1:8770/v1/ingest")]
-    url: String,
+    #[command(flatten)]
+    url: IngestUrl,
     /// "recorded" (the recording's timestamps), "max", or frames per second.
     #[arg(long, default_value = "recorded")]
     rate: Rate,
@@ -29,10 +39,8 @@ pub struct Args {
     /// never a growing delay.
     #[arg(long, default_value_t = 8)]
     live_window: usize,
-    /// Image encoding on the wire: raw8, png (the recording's files, sent as they are) or sparse
-    /// (particles exact, background coarse: what a headset's Wi-Fi carries).
-    #[arg(long, default_value = "raw8")]
-    encoding: Encoding,
+    #[command(flatten)]
+    encoding: WireEncoding,
     /// Coordinate convention of the vectors received: opencv, unity or webxr.
     #[arg(long, default_value = "opencv")]
     convention: Convention,
@@ -42,19 +50,14 @@ pub struct Args {
     /// Write the causal vectors received, same columns.
     #[arg(long)]
     causal_out: Option<PathBuf>,
-    /// TOML config to ask for [default: REC/mrptv.toml if present, else the server's].
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Run this many headsets at once, each streaming the recording on its own connection.
-    #[arg(long, default_value_t = 1)]
-    headsets: usize,
-    /// For wss:// URLs: also trust the certificates in this PEM file (e.g. a server's
-    /// self-signed cert.pem); the public web roots are always trusted.
-    #[arg(long, value_name = "PEM")]
-    ca_cert: Option<PathBuf>,
-    /// Print the summary as JSON.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    config: ConfigFile,
+    #[command(flatten)]
+    headsets: Headsets,
+    #[command(flatten)]
+    ca_cert: CaCert,
+    #[command(flatten)]
+    output: JsonOutput,
     #[command(flatten)]
     secret: IngestSecret,
 }
@@ -62,28 +65,24 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     init_logging("warn");
     let recording = Recording::open(&args.rec)?;
-    let suggested = args.rec.join("mrptv.toml");
-    let config = match args.config {
+    let config = match args.config.or_in_recording(&args.rec) {
         Some(path) => Some(mrptv::config::load(&path)?),
-        None if suggested.is_file() => Some(mrptv::config::load(&suggested)?),
         None => None,
     };
-    if args.headsets == 0 {
-        bail!("--headsets must be at least 1");
-    }
+    let headsets = args.headsets.count()?;
     let options = ReplayOptions {
         rate: args.rate,
         max_in_flight: args.in_flight,
         live_window: args.live_window,
-        encoding: args.encoding,
+        encoding: args.encoding.encoding,
         convention: args.convention,
         config,
         keep_batches: args.out.is_some() || args.causal_out.is_some(),
-        tls: client_tls(args.ca_cert.as_deref())?,
+        tls: args.ca_cert.client_tls()?,
         secret: args.secret.secret,
-        ..ReplayOptions::new(args.url)
+        ..ReplayOptions::new(args.url.url)
     };
-    let reports = runtime()?.block_on(replay(&recording, &options, args.headsets))?;
+    let reports = runtime()?.block_on(replay(&recording, &options, headsets))?;
     for (path, batches) in [
         (&args.out, &reports[0].refined),
         (&args.causal_out, &reports[0].causal),
@@ -92,7 +91,7 @@ pub fn run(args: Args) -> Result<()> {
             write_batches(path, batches)?;
         }
     }
-    print_replay(&reports, args.json)
+    print_replay(&reports, args.output.json)
 }
 
 /// The vectors of `batches` as CSV: frame,t_s,track_id,x,y,z,u,v,w.

@@ -7,17 +7,39 @@ use anyhow::{Context, Result};
 
 use mrptv::client::{self, ReplayOptions, SyntheticSource};
 use mrptv::protocol::Encoding;
-use mrptv::rerun_log::{start_proxy, RerunOptions, RerunSink};
+use mrptv::rerun_log::{start_proxy, RerunOptions};
 use mrptv::server::{self, FieldOptions, ServerOptions};
 use mrptv::tls::ServerTls;
 use mrptv_engine::field::StreamField;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use mrptv_engine::PipelineConfig;
 
-use super::args::{lan_address, setup_tls, DepthRange, GuardArgs, TlsArgs};
-use super::{init_logging, method_config, runtime, termination};
+use super::args::{
+    lan_address, setup_tls, ConfigChoices, ConfigFile, GuardArgs, RerunArgs, TlsArgs,
+};
+use super::{init_logging, runtime, termination};
 
+// A server's config, volume and Rerun logs are its sessions'; it logs every session, so its
+// images are off by default.
 #[derive(clap::Args)]
+#[command(
+    mut_arg("config", |a| a.help(
+        "TOML config for sessions whose hello brings none [default: built-in defaults]"
+    )),
+    mut_arg("method", |a| a.help(
+        "Use the published method's choices as the sessions' default config"
+    )),
+    mut_arg("depth_range", |a| a.help(
+        "The measurement volume's depths, metres along the cameras' common viewing direction: \
+         NEAR..FAR (FAR may be inf) for sessions whose hello brings no config [default: every \
+         depth both cameras see]"
+    )),
+    mut_arg("rerun", |a| a.help(
+        "Log every session to Rerun: file:DIR (one .rrd per session), connect (a viewer on \
+         this machine) or connect:URL. Repeat for several"
+    )),
+    mut_arg("rerun_images_every", |a| a.default_value("0")),
+)]
 pub struct Args {
     /// Address to listen on.
     #[arg(long, default_value = "127.0.0.1:8770")]
@@ -35,26 +57,15 @@ pub struct Args {
     /// Record every session's incoming frames as a recording directory under DIR.
     #[arg(long, value_name = "DIR")]
     record: Option<PathBuf>,
-    /// TOML config for sessions whose hello brings none [default: built-in defaults].
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Use the published method's choices as the sessions' default config.
-    #[arg(long)]
-    method: bool,
-    /// The measurement volume's depths, metres along the cameras' common viewing direction:
-    /// NEAR..FAR (FAR may be inf) for sessions whose hello brings no config [default: every depth both cameras see].
-    #[arg(long, value_name = "NEAR..FAR")]
-    depth_range: Option<DepthRange>,
+    #[command(flatten)]
+    config: ConfigFile,
+    #[command(flatten)]
+    choices: ConfigChoices,
     /// Frames a session may queue before the oldest is dropped.
     #[arg(long, default_value_t = ServerOptions::default().queue_frames)]
     queue_frames: usize,
-    /// Log every session to Rerun: file:DIR (one .rrd per session), connect (a viewer on
-    /// this machine) or connect:URL. Repeat for several.
-    #[arg(long, value_name = "SINK")]
-    rerun: Vec<RerunSink>,
-    /// With --rerun: log the camera images every N frames (0: never).
-    #[arg(long, default_value_t = 0, value_name = "N")]
-    rerun_images_every: u64,
+    #[command(flatten)]
+    rerun: RerunArgs,
     /// Each session's mean-flow field (`field` messages to viewers): cell size, metres
     /// [default: a tenth of the volume the session's first 500 vectors span, rounded].
     #[arg(long, value_name = "M")]
@@ -80,16 +91,11 @@ struct Secrets {
 
 pub fn run(args: Args) -> Result<()> {
     let tls = args.tls.source(args.bind);
-    let config = match args.config {
-        Some(path) => mrptv::config::load(&path)?,
+    let config = match &args.config.config {
+        Some(path) => mrptv::config::load(path)?,
         None => PipelineConfig::default(),
     };
-    let mut config = if args.method {
-        method_config(&config)
-    } else {
-        config
-    };
-    DepthRange::apply(args.depth_range, &mut config);
+    let config = args.choices.apply(config);
     StreamField::new(args.field_cell, args.field_window)?;
     anyhow::ensure!(
         args.field_interval.is_finite() && args.field_interval >= 0.0,
@@ -106,9 +112,9 @@ pub fn run(args: Args) -> Result<()> {
         config,
         queue_frames: args.queue_frames,
         record_dir: args.record,
-        rerun: (!args.rerun.is_empty()).then(|| RerunOptions {
-            sinks: args.rerun,
-            images_every: args.rerun_images_every,
+        rerun: (!args.rerun.rerun.is_empty()).then(|| RerunOptions {
+            sinks: args.rerun.rerun,
+            images_every: args.rerun.rerun_images_every,
             ..Default::default()
         }),
         ..Default::default()
@@ -116,7 +122,7 @@ pub fn run(args: Args) -> Result<()> {
     init_logging("info");
     let secrets = Secrets {
         ingest: args.guard.ingest_secret.clone(),
-        watch: args.guard.watch_secret.is_some(),
+        watch: args.guard.watch_secret.watch_secret.is_some(),
     };
     args.guard.apply(&mut options)?;
     // Kept alive while the server runs: one Rerun gRPC server for every session.
@@ -186,7 +192,8 @@ async fn serve(
         tokio::spawn(async move {
             let source = SyntheticSource::new(spec, 1, None, encoding);
             match client::replay(source, &options, stopped(stop), |_| {}).await {
-                // Logged under the binary's name, as before the CLI had modules.
+                // The target is the binary's name: log filters and readers need not know the
+                // CLI's module layout.
                 Ok(r) => {
                     tracing::info!(target: "mrptv", frames = r.frames_sent, "demo headset stopped")
                 }

@@ -8,6 +8,7 @@ use anyhow::{bail, Result};
 use mrptv::offline;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 
+use super::args::SceneSize;
 use super::progress_bar;
 
 #[derive(clap::Args)]
@@ -16,23 +17,15 @@ pub struct Args {
     scenario: Scenario,
     /// Output recording directory (created; must be empty or absent).
     out: PathBuf,
-    /// Number of frames [default: the scenario's].
-    #[arg(long)]
-    frames: Option<usize>,
-    /// Number of particles in the domain [default: the scenario's].
-    #[arg(long)]
-    particles: Option<usize>,
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
+    #[command(flatten)]
+    size: SceneSize,
 }
 
 pub fn run(args: Args) -> Result<()> {
     let Args {
         scenario,
         out,
-        frames,
-        particles,
-        seed,
+        size,
     } = args;
     if out.exists()
         && fs::read_dir(&out)
@@ -45,11 +38,8 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     let spec = ScenarioSpec::new(scenario);
-    let frames = frames.unwrap_or(spec.default_frames);
-    let particles = particles.unwrap_or(spec.default_particles);
-    if frames == 0 {
-        bail!("--frames must be at least 1");
-    }
+    let (frames, particles) = size.of(&spec)?;
+    let seed = size.seed;
     let bar = progress_bar(frames, "synth");
     let summary = offline::write_synthetic(spec, &out, frames, particles, seed, |n| {
         bar.set_position(n as u64)

@@ -87,9 +87,9 @@ impl Hl2ssEndpoints {
 /// The rig hl2ss's calibration gives, and how well the lens model fits it.
 #[derive(Debug, Clone)]
 pub struct BridgeRig {
-    pub rig: StereoRig,
+    pub(crate) rig: StereoRig,
     /// hl2ss poses are of the rig node: `world_from_rig = world_from_node * node_from_left`.
-    pub node_from_left: Isometry3<f64>,
+    pub(crate) node_from_left: Isometry3<f64>,
     pub left_fit: LensFit,
     pub right_fit: LensFit,
 }
@@ -149,7 +149,7 @@ pub struct BridgeCounters {
     pub unposed: u64,
     /// Pairs dropped unsent because more than 4 were waiting (the server was behind: a live
     /// source does not queue up old frames), or because their time did not move forward.
-    pub stale: u64,
+    pub(crate) stale: u64,
 }
 
 #[derive(Clone, Copy)]
@@ -341,24 +341,19 @@ impl Hl2ssSource {
             ),
             ("right", endpoints.right_port, |f| (Side::Right, f)),
         ] {
+            let io = |error| BridgeError::Io {
+                camera,
+                addr: format!("{}:{port}", endpoints.host),
+                error,
+            };
             let mut stream = endpoints.connect(camera, port)?;
             let _ = stream.set_read_timeout(Some(STREAM_SILENCE));
-            stream
-                .write_all(&config.encode())
-                .map_err(|error| BridgeError::Io {
-                    camera,
-                    addr: format!("{}:{port}", endpoints.host),
-                    error,
-                })?;
+            stream.write_all(&config.encode()).map_err(io)?;
             let tx = tx.clone();
             std::thread::Builder::new()
                 .name(format!("hl2ss-{camera}"))
                 .spawn(move || read_stream(stream, camera, codec, side, tx))
-                .map_err(|error| BridgeError::Io {
-                    camera,
-                    addr: format!("{}:{port}", endpoints.host),
-                    error,
-                })?;
+                .map_err(io)?;
         }
         Ok(Self {
             rig,
@@ -463,9 +458,5 @@ impl FrameSource for Hl2ssSource {
                 return Some(Ok(frame));
             }
         }
-    }
-
-    fn frame_count(&self) -> Option<usize> {
-        None
     }
 }

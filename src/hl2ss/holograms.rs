@@ -32,7 +32,7 @@ pub const END_DISPLAY_LIST: u32 = 19;
 pub const CYLINDER: u32 = 2;
 
 /// One command, framed.
-pub fn message(id: u32, data: &[u8]) -> Vec<u8> {
+pub(crate) fn message(id: u32, data: &[u8]) -> Vec<u8> {
     let mut m = Vec::with_capacity(8 + data.len());
     m.extend_from_slice(&id.to_le_bytes());
     m.extend_from_slice(&(data.len() as u32).to_le_bytes());
@@ -40,12 +40,20 @@ pub fn message(id: u32, data: &[u8]) -> Vec<u8> {
     m
 }
 
+/// Shows (`true`) or hides the primitive `key`.
+fn set_active(key: u32, active: bool) -> Vec<u8> {
+    message(
+        SET_ACTIVE,
+        &[key.to_le_bytes(), u32::from(active).to_le_bytes()].concat(),
+    )
+}
+
 fn words(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
 /// `set world transform`: key, position, rotation (x, y, z, w), scale, in Unity's frame.
-pub fn world_transform(
+pub(crate) fn world_transform(
     key: u32,
     position: [f32; 3],
     rotation: [f32; 4],
@@ -60,7 +68,7 @@ pub fn world_transform(
 
 /// An arrow of a vector as a Unity cylinder: centre, rotation taking +y along the vector, and
 /// scale (`width` across, `length` long). Input and output in Unity's frame.
-pub fn arrow_transform(
+pub(crate) fn arrow_transform(
     position_m: [f32; 3],
     velocity_m_per_s: [f32; 3],
     seconds: f64,
@@ -160,10 +168,7 @@ impl Painter {
         // Hidden until there is something to show (whatever the plugin's default).
         let mut hide = vec![message(BEGIN_DISPLAY_LIST, &[])];
         for &key in &painter.keys {
-            hide.push(message(
-                SET_ACTIVE,
-                &[key.to_le_bytes(), 0u32.to_le_bytes()].concat(),
-            ));
+            hide.push(set_active(key, false));
         }
         hide.push(message(END_DISPLAY_LIST, &[]));
         painter.send(&hide)?;
@@ -191,7 +196,7 @@ impl Painter {
     }
 
     /// Draws a batch unless the last update was under `1 / rate_hz` ago; `true` if drawn.
-    pub fn paint(&mut self, batch: &DecodedBatch) -> Result<bool, HologramError> {
+    pub(crate) fn paint(&mut self, batch: &DecodedBatch) -> Result<bool, HologramError> {
         let arrows: Vec<Arrow> = batch
             .vectors
             .iter()
@@ -206,7 +211,7 @@ impl Painter {
 
     /// Draws a `field` message's cells (in Unity's convention): the mean velocity at each
     /// cell's centre, cells of fewer than `FIELD_FULL_SAMPLES` samples faded.
-    pub fn paint_field(&mut self, field: &FieldMessage) -> Result<bool, HologramError> {
+    pub(crate) fn paint_field(&mut self, field: &FieldMessage) -> Result<bool, HologramError> {
         let arrows: Vec<Arrow> = field
             .cells
             .iter()
@@ -261,17 +266,11 @@ impl Painter {
                 &[key.to_le_bytes().to_vec(), words(&rgba)].concat(),
             ));
             if i >= self.shown {
-                list.push(message(
-                    SET_ACTIVE,
-                    &[key.to_le_bytes(), 1u32.to_le_bytes()].concat(),
-                ));
+                list.push(set_active(key, true));
             }
         }
         for &key in &self.keys[n..self.shown.max(n)] {
-            list.push(message(
-                SET_ACTIVE,
-                &[key.to_le_bytes(), 0u32.to_le_bytes()].concat(),
-            ));
+            list.push(set_active(key, false));
         }
         list.push(message(END_DISPLAY_LIST, &[]));
         let answers = self.send(&list)?;

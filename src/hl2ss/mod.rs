@@ -30,30 +30,26 @@ use mrptv_engine::geometry::{isometry_from_row_major, CameraModel, Distortion, S
 
 pub const LEFT_FRONT_PORT: u16 = 3800;
 pub const RIGHT_FRONT_PORT: u16 = 3802;
-pub const VLC_WIDTH: u32 = 640;
-pub const VLC_HEIGHT: u32 = 480;
+pub(crate) const VLC_WIDTH: u32 = 640;
+pub(crate) const VLC_HEIGHT: u32 = 480;
 pub const VLC_PIXELS: usize = (VLC_WIDTH * VLC_HEIGHT) as usize;
 /// `sensor_ticks`, `exposure`, `gain`, reserved.
-pub const VLC_METADATA_BYTES: usize = 24;
-pub const POSE_BYTES: usize = 64;
+pub(crate) const VLC_METADATA_BYTES: usize = 24;
+pub(crate) const POSE_BYTES: usize = 64;
 /// Frame header: timestamp and payload size.
-pub const HEADER_BYTES: usize = 12;
+pub(crate) const HEADER_BYTES: usize = 12;
 /// uv2x, uv2y, extrinsics, mapx, mapy, K.
-pub const CALIBRATION_FLOATS: usize = 4 * VLC_PIXELS + 16 + 4;
-pub const PROFILE_RAW: u8 = 0xFF;
+pub(crate) const CALIBRATION_FLOATS: usize = 4 * VLC_PIXELS + 16 + 4;
+pub(crate) const PROFILE_RAW: u8 = 0xFF;
 /// hl2ss's `VideoProfile.H264_BASE`: constrained baseline, what OpenH264 decodes.
 pub const PROFILE_H264_BASE: u8 = 0;
-/// hl2ss's `VideoProfile.H265_MAIN`.
-pub const PROFILE_H265_MAIN: u8 = 3;
 /// hl2ss's client default GOP for encoded streams: one IDR (with its SPS and PPS) a second.
 pub const H264_GOP_FRAMES: u64 = 30;
-/// hl2ss's client default bitrate for an H.264 VLC stream: `640 * 480 * 30 * 12 / 75`.
-pub const H264_DEFAULT_BITRATE: u32 = 1_474_560;
-pub const LEVEL_DEFAULT: u8 = 0xFF;
+pub(crate) const LEVEL_DEFAULT: u8 = 0xFF;
 /// hl2ss's own default for raw VLC streams (the server refuses 0 even when raw).
-pub const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
+pub(crate) const RAW_BITRATE: u32 = 640 * 480 * 30 * 12;
 /// `CODECAPI_AVEncMPVGOPSize`, set to 1 by hl2ss's client for raw streams.
-pub const OPTION_GOP_SIZE: u64 = 10;
+pub(crate) const OPTION_GOP_SIZE: u64 = 10;
 /// `HL2SSAPI_VLCHostTicksOffsetExposure`: the server stamps a frame `host_ticks + factor *
 /// exposure / 100 + constant` (the factor a double's bits) and locates its pose at that time.
 pub const OPTION_TICKS_OFFSET_EXPOSURE: u64 = 0xFFFF_FFFF_FFFF_FFFF;
@@ -62,13 +58,13 @@ pub const OPTION_TICKS_OFFSET_CONSTANT: u64 = 0xFFFF_FFFF_FFFF_FFFE;
 /// What hl2ss's client sends since v1.0.33: host ticks run 12.5 ms after mid-exposure, so
 /// these stamp each frame (and locate its pose) at mid-exposure. Without them a current server
 /// stamps raw host ticks: poses 12.5 ms late.
-pub const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
-pub const TICKS_OFFSET_CONSTANT: i64 = -125_000;
-/// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and today's
-/// timestamp options both date from it.
-pub const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
+pub(crate) const TICKS_OFFSET_EXPOSURE_FACTOR: f64 = 0.0;
+pub(crate) const TICKS_OFFSET_CONSTANT: i64 = -125_000;
+/// The oldest hl2ss whose wire format the bridge speaks: the frame trailer and the timestamp
+/// options the bridge sets both date from it.
+pub(crate) const OLDEST_SUPPORTED_VERSION: &str = "1.0.33";
 /// QPC ticks (100 ns) per second.
-pub const TICKS_PER_SECOND: f64 = 1e7;
+pub(crate) const TICKS_PER_SECOND: f64 = 1e7;
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Hl2ssError {
@@ -114,11 +110,11 @@ pub enum StreamMode {
 /// The configuration a client sends on connecting.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct StreamConfig {
-    pub mode: StreamMode,
+    pub(crate) mode: StreamMode,
     /// Send every n-th frame.
-    pub divisor: u8,
+    pub(crate) divisor: u8,
     pub profile: u8,
-    pub level: u8,
+    pub(crate) level: u8,
     pub bitrate: u32,
     pub options: Vec<(u64, u64)>,
 }
@@ -154,14 +150,14 @@ impl StreamConfig {
         config
     }
 
-    pub fn calibration() -> Self {
+    pub(crate) fn calibration() -> Self {
         Self {
             mode: StreamMode::Calibration,
             ..Self::raw_with_poses()
         }
     }
 
-    pub fn encode(&self) -> Vec<u8> {
+    pub(crate) fn encode(&self) -> Vec<u8> {
         let mut b = vec![self.mode as u8];
         if self.mode == StreamMode::Calibration {
             return b;
@@ -252,7 +248,7 @@ pub struct VlcFrame {
 }
 
 /// `(timestamp, payload bytes)` of a frame header.
-pub fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
+pub(crate) fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
     let mut t = [0; 8];
     t.copy_from_slice(&h[..8]);
     (
@@ -263,7 +259,11 @@ pub fn decode_header(h: &[u8; HEADER_BYTES]) -> (u64, usize) {
 
 impl VlcFrame {
     /// From a raw payload (pixels and trailer) and, in mode 1, the 64 pose bytes.
-    pub fn decode(timestamp: u64, payload: &[u8], pose: Option<&[u8]>) -> Result<Self, Hl2ssError> {
+    pub(crate) fn decode(
+        timestamp: u64,
+        payload: &[u8],
+        pose: Option<&[u8]>,
+    ) -> Result<Self, Hl2ssError> {
         if payload.len() == VLC_PIXELS {
             return Err(Hl2ssError::Frame(format!(
                 "payload of {VLC_PIXELS} bytes: a bare image without the 24-byte trailer, as hl2ss \
@@ -283,7 +283,7 @@ impl VlcFrame {
 
     /// From any payload (the image as the stream's codec sent it, then the 24-byte trailer),
     /// `image` turning the codec's bytes into 640x480 pixels.
-    pub fn decode_with(
+    pub(crate) fn decode_with(
         timestamp: u64,
         payload: &[u8],
         pose: Option<&[u8]>,
@@ -361,7 +361,10 @@ impl VlcFrame {
 }
 
 /// A column-vector isometry from a row-vector 4x4 (`p' = p * M`): the transpose, checked rigid.
-pub fn isometry_from_row_vector(field: &str, m: &[f32; 16]) -> Result<Isometry3<f64>, Hl2ssError> {
+pub(crate) fn isometry_from_row_vector(
+    field: &str,
+    m: &[f32; 16],
+) -> Result<Isometry3<f64>, Hl2ssError> {
     let row_vector = Matrix4::from_row_slice(&m.map(f64::from));
     let column = row_vector.transpose();
     let mut row_major = [0.0; 16];
@@ -371,7 +374,7 @@ pub fn isometry_from_row_vector(field: &str, m: &[f32; 16]) -> Result<Isometry3<
     isometry_from_row_major(field, &row_major).map_err(|e| Hl2ssError::Pose(e.to_string()))
 }
 
-/// The inverse of [`isometry_from_row_vector`] (a fake server's side).
+/// The inverse of `isometry_from_row_vector` (a fake server's side).
 pub fn row_vector_from_isometry(pose: &Isometry3<f64>) -> [f32; 16] {
     let m = pose.to_homogeneous().transpose();
     let mut out = [0f32; 16];
@@ -385,18 +388,18 @@ pub fn row_vector_from_isometry(pose: &Isometry3<f64>) -> [f32; 16] {
 #[derive(Debug, Clone, PartialEq)]
 pub struct VlcCalibration {
     /// Per pixel, row-major (v * 640 + u): the point on the z = 1 plane seen at its centre.
-    pub uv2x: Vec<f32>,
-    pub uv2y: Vec<f32>,
+    pub(crate) uv2x: Vec<f32>,
+    pub(crate) uv2y: Vec<f32>,
     /// Row-vector rig node -> camera.
-    pub extrinsics: [f32; 16],
-    pub mapx: Vec<f32>,
-    pub mapy: Vec<f32>,
+    pub(crate) extrinsics: [f32; 16],
+    pub(crate) mapx: Vec<f32>,
+    pub(crate) mapy: Vec<f32>,
     /// fx, fy, cx, cy of hl2ss's virtual undistorted pinhole.
-    pub k: [f32; 4],
+    pub(crate) k: [f32; 4],
 }
 
 impl VlcCalibration {
-    pub fn decode(b: &[u8]) -> Result<Self, Hl2ssError> {
+    pub(crate) fn decode(b: &[u8]) -> Result<Self, Hl2ssError> {
         if b.len() != 4 * CALIBRATION_FLOATS {
             return Err(Hl2ssError::Calibration(format!(
                 "{} bytes, not {}",
@@ -476,7 +479,7 @@ impl VlcCalibration {
 
     /// The camera's pose on the rig node, column-vector: `point_in_camera = camera_from_rig *
     /// point_in_rig`.
-    pub fn camera_from_rig_node(&self) -> Result<Isometry3<f64>, Hl2ssError> {
+    pub(crate) fn camera_from_rig_node(&self) -> Result<Isometry3<f64>, Hl2ssError> {
         isometry_from_row_vector("extrinsics", &self.extrinsics)
     }
 }
@@ -484,7 +487,7 @@ impl VlcCalibration {
 /// A lens model fitted to an unprojection table, and how well it fits.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LensFit {
-    pub camera: CameraModel,
+    pub(crate) camera: CameraModel,
     /// Root mean square of the reprojection error over the pixels used, pixels.
     pub rms_px: f64,
     pub max_px: f64,
@@ -523,19 +526,53 @@ fn project(p: &Params, x: f64, y: f64) -> (f64, f64) {
 /// Fits OpenCV's rational model (fx, fy, cx, cy, k1..k6, p1, p2: `rig.json`'s 8 coefficients)
 /// to an unprojection table by Levenberg-Marquardt on the pixel reprojection error, over every
 /// `step`-th pixel in each direction with a finite table entry.
-pub fn fit_lens(
+pub(crate) fn fit_lens(
     uv2x: &[f32],
     uv2y: &[f32],
     width: u32,
     height: u32,
     step: usize,
 ) -> Result<LensFit, Hl2ssError> {
-    let bad = |m: String| Hl2ssError::Calibration(m);
     let n = (width * height) as usize;
     if uv2x.len() != n || uv2y.len() != n {
-        return Err(bad(format!("unprojection tables are not {width}x{height}")));
+        return Err(Hl2ssError::Calibration(format!(
+            "unprojection tables are not {width}x{height}"
+        )));
     }
-    let step = step.max(1);
+    let samples = table_samples(uv2x, uv2y, width, height, step.max(1));
+    if samples.len() < 100 {
+        return Err(Hl2ssError::Calibration(format!(
+            "only {} pixels with a finite unprojection",
+            samples.len()
+        )));
+    }
+    let (params, cost) = refine(&samples, central_pinhole(&samples)?);
+    let max_px = samples
+        .iter()
+        .map(|&(x, y, u, v)| {
+            let (pu, pv) = project(&params, x, y);
+            ((pu - u).powi(2) + (pv - v).powi(2)).sqrt()
+        })
+        .fold(0.0, f64::max);
+    Ok(LensFit {
+        camera: camera_of(&params),
+        rms_px: (cost / samples.len() as f64).sqrt(),
+        max_px,
+        pixels_used: samples.len(),
+    })
+}
+
+/// A table entry the fit uses: the ray's normalised (x, y) and its pixel's (u, v).
+type TableSample = (f64, f64, f64, f64);
+
+/// Every `step`-th pixel of the tables, each way, that has a ray of its own.
+fn table_samples(
+    uv2x: &[f32],
+    uv2y: &[f32],
+    width: u32,
+    height: u32,
+    step: usize,
+) -> Vec<TableSample> {
     let mut samples = Vec::new();
     for v in (0..height as usize).step_by(step) {
         for u in (0..width as usize).step_by(step) {
@@ -556,13 +593,12 @@ pub fn fit_lens(
             }
         }
     }
-    if samples.len() < 100 {
-        return Err(bad(format!(
-            "only {} pixels with a finite unprojection",
-            samples.len()
-        )));
-    }
-    // A pinhole from the central pixels by linear least squares: u = fx x + cx, v = fy y + cy.
+    samples
+}
+
+/// The fit's start: a pinhole from the central pixels by linear least squares,
+/// u = fx x + cx, v = fy y + cy, without distortion.
+fn central_pinhole(samples: &[TableSample]) -> Result<Params, Hl2ssError> {
     let central: Vec<_> = samples
         .iter()
         .filter(|(x, y, ..)| x * x + y * y < 0.1)
@@ -583,7 +619,7 @@ pub fn fit_lens(
     let (fx, cx) = line(&mut central.iter().map(|s| (s.0, s.2)));
     let (fy, cy) = line(&mut central.iter().map(|s| (s.1, s.3)));
     if !(fx > 0.0 && fy > 0.0) {
-        return Err(bad(format!(
+        return Err(Hl2ssError::Calibration(format!(
             "the table's axes do not run with the image's (fx {fx:.1}, fy {fy:.1}): not an x-right, y-down camera"
         )));
     }
@@ -592,36 +628,27 @@ pub fn fit_lens(
     params[1] = fy;
     params[2] = cx;
     params[3] = cy;
-    let cost = |p: &Params| -> f64 {
-        samples
-            .iter()
-            .map(|&(x, y, u, v)| {
-                let (pu, pv) = project(p, x, y);
-                (pu - u).powi(2) + (pv - v).powi(2)
-            })
-            .sum()
-    };
-    let mut current = cost(&params);
+    Ok(params)
+}
+
+/// The sum of squared reprojection errors of `samples` under `p`, pixels squared.
+fn reprojection_cost(samples: &[TableSample], p: &Params) -> f64 {
+    samples
+        .iter()
+        .map(|&(x, y, u, v)| {
+            let (pu, pv) = project(p, x, y);
+            (pu - u).powi(2) + (pv - v).powi(2)
+        })
+        .sum()
+}
+
+/// Levenberg-Marquardt from `params` until a step no longer lowers the cost (at most 200
+/// steps); the parameters and their cost.
+fn refine(samples: &[TableSample], mut params: Params) -> (Params, f64) {
+    let mut current = reprojection_cost(samples, &params);
     let mut lambda = 1e-3;
     for _ in 0..200 {
-        let mut jtj = SMatrix::<f64, FIT_PARAMETERS, FIT_PARAMETERS>::zeros();
-        let mut jtr = Params::zeros();
-        for &(x, y, u, v) in &samples {
-            let (pu, pv) = project(&params, x, y);
-            let (ru, rv) = (pu - u, pv - v);
-            let mut ju = Params::zeros();
-            let mut jv = Params::zeros();
-            for k in 0..FIT_PARAMETERS {
-                let h = 1e-7 * params[k].abs().max(1e-3);
-                let mut q = params;
-                q[k] += h;
-                let (qu, qv) = project(&q, x, y);
-                ju[k] = (qu - pu) / h;
-                jv[k] = (qv - pv) / h;
-            }
-            jtj += ju * ju.transpose() + jv * jv.transpose();
-            jtr += ju * ru + jv * rv;
-        }
+        let (jtj, jtr) = normal_equations(samples, &params);
         let mut improved = false;
         for _ in 0..10 {
             let mut damped = jtj;
@@ -633,7 +660,7 @@ pub fn fit_lens(
                 continue;
             };
             let candidate = params + delta;
-            let c = cost(&candidate);
+            let c = reprojection_cost(samples, &candidate);
             if c.is_finite() && c < current {
                 let relative = (current - c) / current.max(1e-300);
                 params = candidate;
@@ -648,25 +675,40 @@ pub fn fit_lens(
             break;
         }
     }
-    let max_px = samples
-        .iter()
-        .map(|&(x, y, u, v)| {
-            let (pu, pv) = project(&params, x, y);
-            ((pu - u).powi(2) + (pv - v).powi(2)).sqrt()
-        })
-        .fold(0.0, f64::max);
-    Ok(LensFit {
-        camera: camera_of(&params),
-        rms_px: (current / samples.len() as f64).sqrt(),
-        max_px,
-        pixels_used: samples.len(),
-    })
+    (params, current)
+}
+
+/// J^T J and J^T r of the reprojection residuals at `params`, the Jacobian by forward
+/// differences.
+fn normal_equations(
+    samples: &[TableSample],
+    params: &Params,
+) -> (SMatrix<f64, FIT_PARAMETERS, FIT_PARAMETERS>, Params) {
+    let mut jtj = SMatrix::<f64, FIT_PARAMETERS, FIT_PARAMETERS>::zeros();
+    let mut jtr = Params::zeros();
+    for &(x, y, u, v) in samples {
+        let (pu, pv) = project(params, x, y);
+        let (ru, rv) = (pu - u, pv - v);
+        let mut ju = Params::zeros();
+        let mut jv = Params::zeros();
+        for k in 0..FIT_PARAMETERS {
+            let h = 1e-7 * params[k].abs().max(1e-3);
+            let mut q = *params;
+            q[k] += h;
+            let (qu, qv) = project(&q, x, y);
+            ju[k] = (qu - pu) / h;
+            jv[k] = (qv - pv) / h;
+        }
+        jtj += ju * ju.transpose() + jv * jv.transpose();
+        jtr += ju * ru + jv * rv;
+    }
+    (jtj, jtr)
 }
 
 /// The stereo rig of two fitted cameras and their extrinsics; mrptv's rig frame is the left
 /// camera's. Also returns `left_from_rig_node`, which turns hl2ss's rig-node poses into
 /// `world_from_rig = world_from_rig_node * rig_node_from_left`.
-pub fn stereo_rig(
+pub(crate) fn stereo_rig(
     left: &LensFit,
     left_calibration: &VlcCalibration,
     right: &LensFit,
@@ -691,12 +733,12 @@ pub fn stereo_rig(
 /// Pairs left and right frames whose timestamps agree within a tolerance. Frames that find no
 /// partner (the other camera's frame was lost, or came too late) are counted and dropped.
 #[derive(Debug)]
-pub struct Pairer {
+pub(crate) struct Pairer {
     tolerance_ticks: u64,
     left: std::collections::VecDeque<VlcFrame>,
     right: std::collections::VecDeque<VlcFrame>,
-    pub unpaired_left: u64,
-    pub unpaired_right: u64,
+    pub(crate) unpaired_left: u64,
+    pub(crate) unpaired_right: u64,
 }
 
 /// How long a frame waits for its partner when the other camera has sent nothing newer (its
@@ -704,7 +746,7 @@ pub struct Pairer {
 const PAIRING_PATIENCE_TICKS: u64 = 10_000_000;
 
 impl Pairer {
-    pub fn new(tolerance_ticks: u64) -> Self {
+    pub(crate) fn new(tolerance_ticks: u64) -> Self {
         Self {
             tolerance_ticks,
             left: Default::default(),
@@ -714,16 +756,16 @@ impl Pairer {
         }
     }
 
-    pub fn tolerance_ticks(&self) -> u64 {
+    pub(crate) fn tolerance_ticks(&self) -> u64 {
         self.tolerance_ticks
     }
 
-    pub fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
+    pub(crate) fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
         self.left.push_back(frame);
         self.pair()
     }
 
-    pub fn push_right(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
+    pub(crate) fn push_right(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
         self.right.push_back(frame);
         self.pair()
     }
@@ -747,7 +789,7 @@ impl Pairer {
     }
 
     /// At the end of the streams: whatever waits for a partner never gets one.
-    pub fn flush(&mut self) {
+    pub(crate) fn flush(&mut self) {
         self.unpaired_left += self.left.len() as u64;
         self.unpaired_right += self.right.len() as u64;
         self.left.clear();
@@ -756,7 +798,7 @@ impl Pairer {
 
     /// Frames a second older than the newest frame of either camera are given up on: one
     /// camera's stream has stalled. (A lagging stream's frames still pair when they come.)
-    pub fn trim(&mut self) {
+    pub(crate) fn trim(&mut self) {
         let newest = [self.left.back(), self.right.back()]
             .into_iter()
             .flatten()

@@ -28,7 +28,7 @@ impl Role {
 /// A secret as kept in memory: its SHA-256, so comparing takes the same time whatever the
 /// length or content of what a client presents.
 #[derive(Clone)]
-pub struct Secret([u8; 32]);
+pub(crate) struct Secret([u8; 32]);
 
 impl std::fmt::Debug for Secret {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -47,7 +47,7 @@ pub enum SecretError {
 }
 
 /// Short enough to type on a headset keyboard, long enough not to be guessed online.
-pub const MIN_SECRET_CHARS: usize = 12;
+pub(crate) const MIN_SECRET_CHARS: usize = 12;
 
 fn digest(text: &str) -> [u8; 32] {
     let d = ring::digest::digest(&ring::digest::SHA256, text.as_bytes());
@@ -105,7 +105,7 @@ impl AccessControl {
     }
 
     /// `Ok` when the request may go on; otherwise what to tell the client.
-    pub fn check(
+    pub(crate) fn check(
         &self,
         role: Role,
         headers: &HeaderMap,

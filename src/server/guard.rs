@@ -28,7 +28,12 @@ pub(super) struct GuardedListener<L> {
 }
 
 impl<L: Listener> GuardedListener<L> {
-    pub fn new(inner: L, max_connections: usize, handshake: Duration, idle: Duration) -> Self {
+    pub(crate) fn new(
+        inner: L,
+        max_connections: usize,
+        handshake: Duration,
+        idle: Duration,
+    ) -> Self {
         let max_connections = max_connections.max(1);
         Self {
             inner,
@@ -98,17 +103,18 @@ impl<T> GuardedIo<T> {
         self.deadline.as_mut().reset(Instant::now() + self.idle);
     }
 
-    /// After the inner IO returned `Pending`: an error once the deadline has passed (the
-    /// deadline's waker is registered either way).
-    fn expired(&mut self, cx: &mut Context<'_>) -> Option<io::Error> {
-        self.deadline.as_mut().poll(cx).is_ready().then(|| {
-            let what = if self.handshaking {
-                "no complete request within the handshake timeout"
-            } else {
-                "idle timeout"
-            };
-            io::Error::new(io::ErrorKind::TimedOut, what)
-        })
+    /// After the inner IO returned `Pending`: an error once the deadline has passed, else still
+    /// pending (the deadline's waker is registered either way).
+    fn pending<R>(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<R>> {
+        if self.deadline.as_mut().poll(cx).is_pending() {
+            return Poll::Pending;
+        }
+        let what = if self.handshaking {
+            "no complete request within the handshake timeout"
+        } else {
+            "idle timeout"
+        };
+        Poll::Ready(Err(io::Error::new(io::ErrorKind::TimedOut, what)))
     }
 }
 
@@ -128,10 +134,7 @@ impl<T> GuardedIo<T> {
                 }
                 Poll::Ready(Ok(n))
             }
-            Poll::Pending => match self.expired(cx) {
-                Some(e) => Poll::Ready(Err(e)),
-                None => Poll::Pending,
-            },
+            Poll::Pending => self.pending(cx),
             other => other,
         }
     }
@@ -154,10 +157,7 @@ impl<T: AsyncRead + Unpin> AsyncRead for GuardedIo<T> {
                 }
                 Poll::Ready(Ok(()))
             }
-            Poll::Pending => match this.expired(cx) {
-                Some(e) => Poll::Ready(Err(e)),
-                None => Poll::Pending,
-            },
+            Poll::Pending => this.pending(cx),
             other => other,
         }
     }

@@ -14,7 +14,10 @@ use nalgebra::Isometry3;
 use tokio::sync::{mpsc, oneshot};
 
 use super::queue::{DropOldestQueue, Pushed};
-use super::{unix_ms, FieldOptions, Hub, HubEvent, PublishedBatch, PublishedField, SessionShared};
+use super::{
+    unix_ms, FieldOptions, Hub, HubEvent, Keepalive, PublishedBatch, PublishedField, SessionShared,
+    SessionSlot,
+};
 use crate::offline::RunTotals;
 use crate::protocol::{
     decode_frame, parse_text, Batch, BatchKind, Counters, Encoding, ErrorCode, HeadsetMessage,
@@ -76,7 +79,7 @@ struct Session {
     /// Resolves when the pipeline thread has drained the queue and closed the recording.
     worker_done: oneshot::Receiver<()>,
     /// Its place among `--max-sessions`, given back when the session ends.
-    _slot: super::SessionSlot,
+    _slot: SessionSlot,
 }
 
 struct Connection {
@@ -146,11 +149,7 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
     let mut shutdown = hub.shutdown.clone();
     let mut status = tokio::time::interval(hub.options.status_interval);
     status.tick().await;
-    let idle_timeout = hub.options.idle_timeout;
-    let mut keepalive = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
-    keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    keepalive.tick().await;
-    let mut last_heard = Instant::now();
+    let mut keepalive = Keepalive::start(hub.options.idle_timeout).await;
     let mut hello_by = tokio::time::Instant::now() + hub.options.handshake_timeout;
     let mut conn = Connection {
         hub: Arc::clone(&hub),
@@ -164,7 +163,7 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
         loop {
             tokio::select! {
                 message = stream.next() => {
-                    last_heard = Instant::now();
+                    keepalive.heard();
                     match message {
                         Some(Ok(Message::Text(text))) => {
                             if conn.on_text(text.as_str()).await {
@@ -198,9 +197,8 @@ pub(crate) async fn serve_headset(socket: WebSocket, hub: Arc<Hub>) {
                     break;
                 }
                 _ = status.tick() => conn.send_status(),
-                _ = keepalive.tick() => {
-                    if last_heard.elapsed() > idle_timeout {
-                        let reason = format!("idle: nothing received for {} s", idle_timeout.as_secs_f64());
+                due = keepalive.ping_due() => {
+                    if let Err(reason) = due {
                         tracing::info!("headset {reason}: disconnecting it");
                         conn.finish(Some(&reason)).await;
                         break;
@@ -276,6 +274,87 @@ impl Connection {
     }
 
     async fn start(&mut self, hello: Hello) -> Result<(), ProtocolError> {
+        let (slot, rig, pipeline) = self.admit(&hello)?;
+        let number = self.hub.next_session_number();
+        let id = format!("s{number}");
+        let started_unix_ms = unix_ms();
+        let queue = Arc::new(DropOldestQueue::<QueuedFrame>::new(
+            self.hub.options.queue_frames,
+        ));
+        let shared = Arc::new(SessionShared {
+            number,
+            description: SessionDescription {
+                id: id.clone(),
+                client: hello.client.clone(),
+                width: rig.width,
+                height: rig.height,
+                encoding: hello.image.encoding,
+                convention: hello.convention,
+                started_unix_ms,
+            },
+            counters: Default::default(),
+            viewers: Default::default(),
+            reset_field: Default::default(),
+            close_queue: {
+                let queue = Arc::clone(&queue);
+                Box::new(move || queue.close())
+            },
+        });
+        let recorder = match &self.hub.options.record_dir {
+            Some(dir) => {
+                let dir = dir.join(format!("{id}-{started_unix_ms}"));
+                let config = pipeline.config().clone();
+                Some(
+                    self.start_recorder(dir, rig.clone(), config, &shared)
+                        .await?,
+                )
+            }
+            None => None,
+        };
+        let welcome = ServerMessage::Welcome {
+            protocol: PROTOCOL_VERSION,
+            server: format!("mrptv {}", env!("CARGO_PKG_VERSION")),
+            session: id.clone(),
+            session_number: number,
+            convention: hello.convention,
+            config: Box::new(pipeline.config().clone()),
+            queue_frames: self.hub.options.queue_frames.max(1),
+            refined_delay_frames: pipeline.config().velocity.half_window_frames,
+        };
+        let rerun = self.start_rerun(&id, started_unix_ms, &rig);
+        let frame_indices = Arc::new(FrameIndices::default());
+        let worker = Worker {
+            frame_indices: Arc::clone(&frame_indices),
+            shared: Arc::clone(&shared),
+            pipeline,
+            out: self.out.clone(),
+            events: self.hub.events.clone(),
+            recorder,
+            queue: Arc::clone(&queue),
+            totals: RunTotals::default(),
+            rerun,
+            frames_processed: 0,
+            uncertainty: hello.uncertainty,
+            field: LiveField::new(&self.hub.options.field),
+        };
+        let worker_done = self.spawn_worker(&id, worker)?;
+        tracing::info!(session = %id, client = %hello.client, width = rig.width, height = rig.height,
+            encoding = ?hello.image.encoding, convention = ?hello.convention, "session started");
+        self.send(&welcome);
+        self.hub.add_session(Arc::clone(&shared));
+        self.session = Some(Session {
+            shared,
+            queue,
+            frame_indices,
+            worker_done,
+            _slot: slot,
+        });
+        Ok(())
+    }
+
+    /// Whether the server takes the session `hello` asks for: not shutting down, images within
+    /// the limit, a place among `--max-sessions`, a rig and config the pipeline accepts.
+    fn admit(&self, hello: &Hello) -> Result<(SessionSlot, StereoRig, Pipeline), ProtocolError> {
         if self.hub.shutting_down() {
             return Err(ProtocolError::new(
                 ErrorCode::ShuttingDown,
@@ -320,81 +399,38 @@ impl Connection {
             }
             other => ProtocolError::new(ErrorCode::BadConfig, other.to_string()),
         })?;
-        let number = self.hub.next_session_number();
-        let id = format!("s{number}");
-        let started_unix_ms = unix_ms();
-        let queue = Arc::new(DropOldestQueue::<QueuedFrame>::new(
-            self.hub.options.queue_frames,
-        ));
-        let shared = Arc::new(SessionShared {
-            number,
-            description: SessionDescription {
-                id: id.clone(),
-                client: hello.client.clone(),
-                width: rig.width,
-                height: rig.height,
-                encoding: hello.image.encoding,
-                convention: hello.convention,
-                started_unix_ms,
-            },
-            counters: Default::default(),
-            viewers: Default::default(),
-            reset_field: Default::default(),
-            close_queue: {
-                let queue = Arc::clone(&queue);
-                Box::new(move || queue.close())
-            },
-        });
-        let recorder = match &self.hub.options.record_dir {
-            Some(dir) => {
-                // Creating and syncing files blocks: off the network threads.
-                let (dir, rig, config) = (
-                    dir.join(format!("{id}-{started_unix_ms}")),
-                    rig.clone(),
-                    pipeline.config().clone(),
-                );
-                let ack = self.durable_ack(&shared);
-                let started =
-                    tokio::task::spawn_blocking(move || Recorder::start(dir, &rig, &config, ack))
-                        .await
-                        .map_err(|e| {
-                            ProtocolError::new(
-                                ErrorCode::Internal,
-                                format!("cannot start the recorder: {e}"),
-                            )
-                        })?;
-                Some(started?)
-            }
-            None => None,
-        };
+        Ok((slot, rig, pipeline))
+    }
+
+    /// The session's recorder, writing under `dir`.
+    async fn start_recorder(
+        &self,
+        dir: PathBuf,
+        rig: StereoRig,
+        config: PipelineConfig,
+        shared: &Arc<SessionShared>,
+    ) -> Result<Recorder, ProtocolError> {
+        let ack = self.durable_ack(shared);
+        // Creating and syncing files blocks: off the network threads.
+        tokio::task::spawn_blocking(move || Recorder::start(dir, &rig, &config, ack))
+            .await
+            .map_err(|e| {
+                ProtocolError::new(
+                    ErrorCode::Internal,
+                    format!("cannot start the recorder: {e}"),
+                )
+            })?
+    }
+
+    /// Runs the session's pipeline on its own thread; resolves when it has drained the queue
+    /// and closed the recording.
+    fn spawn_worker(
+        &self,
+        id: &str,
+        worker: Worker,
+    ) -> Result<oneshot::Receiver<()>, ProtocolError> {
         let (done_tx, worker_done) = oneshot::channel();
-        let welcome = ServerMessage::Welcome {
-            protocol: PROTOCOL_VERSION,
-            server: format!("mrptv {}", env!("CARGO_PKG_VERSION")),
-            session: id.clone(),
-            session_number: number,
-            convention: hello.convention,
-            config: Box::new(pipeline.config().clone()),
-            queue_frames: self.hub.options.queue_frames.max(1),
-            refined_delay_frames: pipeline.config().velocity.half_window_frames,
-        };
-        let rerun = self.start_rerun(&id, started_unix_ms, &rig);
         let guard = self.hub.worker();
-        let frame_indices = Arc::new(FrameIndices::default());
-        let worker = Worker {
-            frame_indices: Arc::clone(&frame_indices),
-            shared: Arc::clone(&shared),
-            pipeline,
-            out: self.out.clone(),
-            events: self.hub.events.clone(),
-            recorder,
-            queue: Arc::clone(&queue),
-            totals: RunTotals::default(),
-            rerun,
-            frames_processed: 0,
-            uncertainty: hello.uncertainty,
-            field: LiveField::new(&self.hub.options.field),
-        };
         std::thread::Builder::new()
             .name(format!("pipeline-{id}"))
             .spawn(move || {
@@ -408,18 +444,7 @@ impl Connection {
                     format!("cannot start a pipeline thread: {e}"),
                 )
             })?;
-        tracing::info!(session = %id, client = %hello.client, width = rig.width, height = rig.height,
-            encoding = ?hello.image.encoding, convention = ?hello.convention, "session started");
-        self.send(&welcome);
-        self.hub.add_session(Arc::clone(&shared));
-        self.session = Some(Session {
-            shared,
-            queue,
-            frame_indices,
-            worker_done,
-            _slot: slot,
-        });
-        Ok(())
+        Ok(worker_done)
     }
 
     /// Tells the headset, from the recorder thread, which frames are safely on disk. Each
@@ -739,19 +764,13 @@ impl Worker {
         self.send_error(error);
     }
 
-    fn process(&mut self, frame: QueuedFrame) {
-        let started = Instant::now();
+    /// The frame's left and right pixels. Raw pixels stay in the message's buffer: no copy on
+    /// the way to the pipeline or the recorder.
+    fn decode_images(&self, frame: &QueuedFrame) -> Result<(Bytes, Bytes), ProtocolError> {
         let (w, h) = (
             self.shared.description.width,
             self.shared.description.height,
         );
-        let at_frame = |code, message: String| {
-            let mut e = ProtocolError::new(code, message);
-            e.frame_index = Some(frame.index);
-            e
-        };
-        // Raw pixels stay in the message's buffer: no copy on the way to the pipeline or the
-        // recorder.
         let decode = |camera: &str, bytes: &Bytes| -> Result<Bytes, ProtocolError> {
             match frame.encoding {
                 Encoding::Raw8 => Ok(bytes.clone()),
@@ -759,16 +778,24 @@ impl Worker {
                     .decode_image(bytes, w, h)
                     .map(Bytes::from)
                     .map_err(|m| {
-                        at_frame(
+                        frame_error(
+                            frame.index,
                             ErrorCode::BadImage,
                             format!("frame {}: {camera} image: {m}", frame.index),
                         )
                     }),
             }
         };
-        let images =
-            decode("left", &frame.left).and_then(|l| Ok((l, decode("right", &frame.right)?)));
-        let (left, right) = match images {
+        decode("left", &frame.left).and_then(|l| Ok((l, decode("right", &frame.right)?)))
+    }
+
+    fn process(&mut self, frame: QueuedFrame) {
+        let started = Instant::now();
+        let (w, h) = (
+            self.shared.description.width,
+            self.shared.description.height,
+        );
+        let (left, right) = match self.decode_images(&frame) {
             Ok(images) => images,
             Err(e) => return self.reject(&frame, e),
         };
@@ -787,7 +814,7 @@ impl Worker {
                     PipelineError::ImageSize { .. } => ErrorCode::BadImage,
                     _ => ErrorCode::Internal,
                 };
-                let error = at_frame(code, e.to_string());
+                let error = frame_error(frame.index, code, e.to_string());
                 return self.reject(&frame, error);
             }
         };
@@ -847,28 +874,41 @@ impl Worker {
             let _ = self.events.send(HubEvent::Batch(Arc::new(r)));
         }
         if let Some(field) = field {
-            if let Some(logger) = &self.rerun {
-                let head = &field.head;
-                logger.log_field(head.frame_index, head.t_s, field.cells.clone(), false);
-            }
-            let _ = self.events.send(HubEvent::Field(Arc::new(field)));
+            self.publish_field(field);
         }
-        {
-            let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();
-            c.frames_processed += 1;
-            c.vectors_sent += sent;
-            c.processing_ms_last = processing_s * 1e3;
-            c.processing_ms_mean = self.totals.pipeline_s * 1e3 / c.frames_processed as f64;
-            c.queue_depth = self.queue.len();
-            let health = self.totals.figures();
-            c.detections_per_image = health.detections_per_image;
-            c.linked_fraction = health.linked_fraction;
-            c.matched_fraction = health.matched_fraction;
-            c.velocity_fraction = health.velocity_fraction;
-            c.stereo_candidates_per_particle = health.stereo_candidates_per_particle;
-        }
+        self.count_processed(processing_s, sent);
         tracing::trace!(session = %self.shared.id(), frame = frame.index, vectors = sent,
             processing_ms = processing_s * 1e3, "frame processed");
+        self.record(&frame, left, right);
+    }
+
+    /// The session's mean-flow field to its viewers and its Rerun log.
+    fn publish_field(&self, field: PublishedField) {
+        if let Some(logger) = &self.rerun {
+            let head = &field.head;
+            logger.log_field(head.frame_index, head.t_s, field.cells.clone(), false);
+        }
+        let _ = self.events.send(HubEvent::Field(Arc::new(field)));
+    }
+
+    /// A frame processed in `processing_s` and `sent` vectors, in the session's counters.
+    fn count_processed(&self, processing_s: f64, sent: u64) {
+        let mut c: std::sync::MutexGuard<'_, Counters> = self.shared.counters();
+        c.frames_processed += 1;
+        c.vectors_sent += sent;
+        c.processing_ms_last = processing_s * 1e3;
+        c.processing_ms_mean = self.totals.pipeline_s * 1e3 / c.frames_processed as f64;
+        c.queue_depth = self.queue.len();
+        let health = self.totals.figures();
+        c.detections_per_image = health.detections_per_image;
+        c.linked_fraction = health.linked_fraction;
+        c.matched_fraction = health.matched_fraction;
+        c.velocity_fraction = health.velocity_fraction;
+        c.stereo_candidates_per_particle = health.stereo_candidates_per_particle;
+    }
+
+    /// Hands the frame to the recorder; a recorder that fails is stopped and the headset told.
+    fn record(&mut self, frame: &QueuedFrame, left: Bytes, right: Bytes) {
         if let Some(recorder) = &mut self.recorder {
             let entry = FrameEntry {
                 index: frame.index,
@@ -885,6 +925,13 @@ impl Worker {
             }
         }
     }
+}
+
+/// The error `code` with `message`, about frame `index`.
+fn frame_error(index: u64, code: ErrorCode, message: String) -> ProtocolError {
+    let mut e = ProtocolError::new(code, message);
+    e.frame_index = Some(index);
+    e
 }
 
 fn image_view(width: u32, height: u32, pixels: &[u8]) -> ImageView<'_> {

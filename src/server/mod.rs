@@ -3,7 +3,7 @@
 //! ## Layout
 //! - [`run`] takes a bound listener, options and a shutdown future (tests bind port 0).
 //! - `ingest`: one task per headset WebSocket reads messages, validates them and hands frames to
-//!   the session's pipeline thread through a [`queue::DropOldestQueue`] (bounded: the oldest frame
+//!   the session's pipeline thread through a `queue::DropOldestQueue` (bounded: the oldest frame
 //!   is dropped and reported when the pipeline falls behind). The pipeline thread runs
 //!   [`mrptv_engine::Pipeline`], sends the headset its vector batches first, then publishes them to
 //!   viewers and hands the frame to the session's recorder thread.
@@ -21,7 +21,7 @@
 pub mod access;
 mod guard;
 mod ingest;
-pub mod queue;
+mod queue;
 mod tls_listener;
 mod watch;
 mod web;
@@ -154,20 +154,20 @@ impl Default for ServerOptions {
 /// A batch on its way to viewers, encoded at most once per convention however many watch.
 #[derive(Debug)]
 pub(crate) struct PublishedBatch {
-    pub batch: Batch,
+    pub(crate) batch: Batch,
     /// Per convention, without and with the velocity errors.
     encoded: [[OnceLock<Bytes>; 2]; 3],
 }
 
 impl PublishedBatch {
-    pub fn new(batch: Batch) -> Self {
+    pub(crate) fn new(batch: Batch) -> Self {
         Self {
             batch,
             encoded: Default::default(),
         }
     }
 
-    pub fn encoded(&self, convention: Convention, uncertainty: bool) -> Bytes {
+    pub(crate) fn encoded(&self, convention: Convention, uncertainty: bool) -> Bytes {
         self.encoded[usize::from(convention.code())][usize::from(uncertainty)]
             .get_or_init(|| self.batch.encode_with(convention, uncertainty).into())
             .clone()
@@ -177,16 +177,16 @@ impl PublishedBatch {
 /// A session's mean-flow field, published to its viewers; encoded per convention on demand.
 #[derive(Debug)]
 pub(crate) struct PublishedField {
-    pub session_number: u32,
+    pub(crate) session_number: u32,
     /// The message in OpenCV axes without its rows: each convention's is made from it.
-    pub head: FieldMessage,
+    pub(crate) head: FieldMessage,
     /// World frame, OpenCV axes.
-    pub cells: Vec<CellSummary>,
+    pub(crate) cells: Vec<CellSummary>,
     encoded: [OnceLock<String>; 3],
 }
 
 impl PublishedField {
-    pub fn new(
+    pub(crate) fn new(
         session_number: u32,
         session: String,
         frame: (u64, f64),
@@ -209,7 +209,7 @@ impl PublishedField {
         }
     }
 
-    pub fn message(&self, convention: Convention) -> FieldMessage {
+    pub(crate) fn message(&self, convention: Convention) -> FieldMessage {
         FieldMessage {
             convention,
             cells: FieldMessage::rows(&self.cells, convention),
@@ -217,7 +217,7 @@ impl PublishedField {
         }
     }
 
-    pub fn encoded(&self, convention: Convention) -> String {
+    pub(crate) fn encoded(&self, convention: Convention) -> String {
         self.encoded[usize::from(convention.code())]
             .get_or_init(|| ServerMessage::Field(Box::new(self.message(convention))).to_json())
             .clone()
@@ -244,23 +244,23 @@ pub(crate) enum HubEvent {
 
 /// One live session as others see it.
 pub(crate) struct SessionShared {
-    pub number: u32,
-    pub description: SessionDescription,
-    pub counters: Mutex<Counters>,
+    pub(crate) number: u32,
+    pub(crate) description: SessionDescription,
+    pub(crate) counters: Mutex<Counters>,
     /// Viewers subscribed to this session by name.
-    pub viewers: AtomicUsize,
+    pub(crate) viewers: AtomicUsize,
     /// A viewer asked for the mean-flow field to be emptied; the pipeline thread does it.
-    pub reset_field: AtomicBool,
+    pub(crate) reset_field: AtomicBool,
     /// Closes the session's frame queue: its pipeline then finishes what is queued and ends.
-    pub close_queue: Box<dyn Fn() + Send + Sync>,
+    pub(crate) close_queue: Box<dyn Fn() + Send + Sync>,
 }
 
 impl SessionShared {
-    pub fn id(&self) -> &str {
+    pub(crate) fn id(&self) -> &str {
         &self.description.id
     }
 
-    pub fn counters(&self) -> MutexGuard<'_, Counters> {
+    pub(crate) fn counters(&self) -> MutexGuard<'_, Counters> {
         self.counters
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -269,13 +269,13 @@ impl SessionShared {
 
 /// State shared by every connection.
 pub(crate) struct Hub {
-    pub options: ServerOptions,
+    pub(crate) options: ServerOptions,
     sessions: Mutex<BTreeMap<u32, Arc<SessionShared>>>,
     next_session: AtomicU32,
     /// Viewers subscribed to every session.
-    pub wildcard_viewers: AtomicUsize,
-    pub events: broadcast::Sender<HubEvent>,
-    pub shutdown: watch_channel::Receiver<bool>,
+    pub(crate) wildcard_viewers: AtomicUsize,
+    pub(crate) events: broadcast::Sender<HubEvent>,
+    pub(crate) shutdown: watch_channel::Receiver<bool>,
     connections: AtomicUsize,
     connections_changed: Notify,
     /// Session pipeline threads still running.
@@ -285,7 +285,7 @@ pub(crate) struct Hub {
     session_slots: AtomicUsize,
     /// Serialises viewers' subscription changes, so the per-session limit cannot be overrun by
     /// viewers subscribing at the same moment.
-    pub subscribing: Mutex<()>,
+    pub(crate) subscribing: Mutex<()>,
 }
 
 /// A place among `max_sessions`, held by a session from before its hello is accepted until it
@@ -319,7 +319,7 @@ impl Drop for ConnectionGuard {
 }
 
 impl Hub {
-    pub fn new(options: ServerOptions, shutdown: watch_channel::Receiver<bool>) -> Self {
+    pub(crate) fn new(options: ServerOptions, shutdown: watch_channel::Receiver<bool>) -> Self {
         let (events, _) = broadcast::channel(options.viewer_buffer.max(1));
         Self {
             options,
@@ -338,7 +338,7 @@ impl Hub {
     }
 
     /// A session slot, or `None` when `max_sessions` are taken (checked and taken atomically).
-    pub fn reserve_session(self: &Arc<Self>) -> Option<SessionSlot> {
+    pub(crate) fn reserve_session(self: &Arc<Self>) -> Option<SessionSlot> {
         let max = self.options.max_sessions;
         self.session_slots
             .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
@@ -348,7 +348,7 @@ impl Hub {
             .map(|_| SessionSlot(Arc::clone(self)))
     }
 
-    pub fn worker(self: &Arc<Self>) -> WorkerGuard {
+    pub(crate) fn worker(self: &Arc<Self>) -> WorkerGuard {
         self.workers.fetch_add(1, Ordering::SeqCst);
         WorkerGuard(Arc::clone(self))
     }
@@ -359,16 +359,16 @@ impl Hub {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    pub fn connection(self: &Arc<Self>) -> ConnectionGuard {
+    pub(crate) fn connection(self: &Arc<Self>) -> ConnectionGuard {
         self.connections.fetch_add(1, Ordering::SeqCst);
         ConnectionGuard(Arc::clone(self))
     }
 
-    pub fn next_session_number(&self) -> u32 {
+    pub(crate) fn next_session_number(&self) -> u32 {
         self.next_session.fetch_add(1, Ordering::SeqCst) + 1
     }
 
-    pub fn add_session(&self, session: Arc<SessionShared>) {
+    pub(crate) fn add_session(&self, session: Arc<SessionShared>) {
         self.sessions().insert(session.number, session);
         let _ = self.events.send(HubEvent::SessionsChanged);
     }
@@ -376,7 +376,7 @@ impl Hub {
     /// The session's `session_ended` and `sessions` events are published before the lock is
     /// released: whoever sees the session gone finds both in the ring (a viewer closing at
     /// shutdown relies on it to send them before its bye).
-    pub fn remove_session(&self, number: u32) {
+    pub(crate) fn remove_session(&self, number: u32) {
         let mut sessions = self.sessions();
         if let Some(s) = sessions.remove(&number) {
             let counters = *s.counters();
@@ -390,11 +390,11 @@ impl Hub {
         drop(sessions);
     }
 
-    pub fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
+    pub(crate) fn session_by_id(&self, id: &str) -> Option<Arc<SessionShared>> {
         self.sessions().values().find(|s| s.id() == id).cloned()
     }
 
-    pub fn session_list(&self) -> Vec<SessionInfo> {
+    pub(crate) fn session_list(&self) -> Vec<SessionInfo> {
         let wildcard = self.wildcard_viewers.load(Ordering::Relaxed);
         self.sessions()
             .values()
@@ -406,12 +406,52 @@ impl Hub {
             .collect()
     }
 
-    pub fn shutting_down(&self) -> bool {
+    pub(crate) fn shutting_down(&self) -> bool {
         *self.shutdown.borrow()
     }
 
-    pub fn session_count(&self) -> usize {
+    pub(crate) fn session_count(&self) -> usize {
         self.sessions().len()
+    }
+}
+
+/// A WebSocket peer's liveness: a ping is due every third of the idle timeout, and a peer that
+/// has sent nothing (not even a pong) for the whole timeout is to be closed.
+pub(crate) struct Keepalive {
+    ticks: tokio::time::Interval,
+    idle_timeout: Duration,
+    last_heard: tokio::time::Instant,
+}
+
+impl Keepalive {
+    pub(crate) async fn start(idle_timeout: Duration) -> Self {
+        let mut ticks = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
+        ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        ticks.tick().await;
+        Self {
+            ticks,
+            idle_timeout,
+            last_heard: tokio::time::Instant::now(),
+        }
+    }
+
+    /// The peer sent something.
+    pub(crate) fn heard(&mut self) {
+        self.last_heard = tokio::time::Instant::now();
+    }
+
+    /// Resolves when the next ping is due; `Err` (the reason to close) once the peer has been
+    /// silent for the idle timeout.
+    pub(crate) async fn ping_due(&mut self) -> Result<(), String> {
+        self.ticks.tick().await;
+        if self.last_heard.elapsed() > self.idle_timeout {
+            Err(format!(
+                "idle: nothing received for {} s",
+                self.idle_timeout.as_secs_f64()
+            ))
+        } else {
+            Ok(())
+        }
     }
 }
 
@@ -443,46 +483,19 @@ pub async fn run(
 ) -> std::io::Result<ShutdownReport> {
     let (shutdown_tx, shutdown_rx) = watch_channel::channel(false);
     let drain_timeout = options.drain_timeout;
-    let tls = options
-        .tls
-        .clone()
-        .map(|config| (config, options.handshake_timeout));
-    let (max_connections, handshake_timeout, idle_timeout) = (
-        options.max_connections,
-        options.handshake_timeout,
-        options.idle_timeout,
-    );
     let hub = Arc::new(Hub::new(options, shutdown_rx));
-    let app = router(Arc::clone(&hub));
     let signal = async move {
         shutdown.await;
         tracing::info!("shutting down: closing sessions");
         let _ = shutdown_tx.send(true);
     };
-    match tls {
-        Some((config, handshake_timeout)) => {
+    match hub.options.tls.clone() {
+        Some(config) => {
+            let handshake_timeout = hub.options.handshake_timeout;
             let listener = tls_listener::TlsListener::new(listener, config, handshake_timeout)?;
-            let listener = guard::GuardedListener::new(
-                listener,
-                max_connections,
-                handshake_timeout,
-                idle_timeout,
-            );
-            axum::serve(listener, app)
-                .with_graceful_shutdown(signal)
-                .await?;
+            serve_guarded(listener, &hub, signal).await?;
         }
-        None => {
-            let listener = guard::GuardedListener::new(
-                listener.tap_io(|tcp| set_nodelay(tcp)),
-                max_connections,
-                handshake_timeout,
-                idle_timeout,
-            );
-            axum::serve(listener, app)
-                .with_graceful_shutdown(signal)
-                .await?;
-        }
+        None => serve_guarded(listener.tap_io(|tcp| set_nodelay(tcp)), &hub, signal).await?,
     }
     // Upgraded WebSocket connections outlive axum's own connection tracking: wait for them.
     let drained = tokio::time::timeout(
@@ -511,6 +524,29 @@ pub async fn run(
     })
 }
 
+/// Serves the hub's routes on `listener` until `signal`, every connection held to the guard's
+/// limits.
+async fn serve_guarded<L>(
+    listener: L,
+    hub: &Arc<Hub>,
+    signal: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()>
+where
+    L: axum::serve::Listener,
+    L::Addr: std::fmt::Debug,
+{
+    let options = &hub.options;
+    let listener = guard::GuardedListener::new(
+        listener,
+        options.max_connections,
+        options.handshake_timeout,
+        options.idle_timeout,
+    );
+    axum::serve(listener, router(Arc::clone(hub)))
+        .with_graceful_shutdown(signal)
+        .await
+}
+
 /// Largest message a viewer may send.
 const VIEWER_MESSAGE_BYTES: usize = 64 << 10;
 
@@ -521,8 +557,18 @@ fn router(hub: Arc<Hub>) -> Router {
         .route("/vendor/{*path}", get(web::vendor))
         .route("/healthz", get(healthz))
         .route("/v1/sessions", get(sessions))
-        .route("/v1/ingest", get(ingest_upgrade))
-        .route("/v1/watch", get(watch_upgrade))
+        .route(
+            "/v1/ingest",
+            get(|ws, headers, Query(query), State(hub)| {
+                upgrade(access::Role::Ingest, ws, headers, query, hub)
+            }),
+        )
+        .route(
+            "/v1/watch",
+            get(|ws, headers, Query(query), State(hub)| {
+                upgrade(access::Role::Watch, ws, headers, query, hub)
+            }),
+        )
         .layer(axum::middleware::map_response(one_request_per_connection))
         .with_state(hub)
 }
@@ -573,34 +619,28 @@ fn refusal(
     )
 }
 
-async fn ingest_upgrade(
+/// A headset's (`Ingest`) or a viewer's (`Watch`) WebSocket: refused without the role's secret,
+/// else upgraded with the role's message limit and served by the role's task.
+async fn upgrade(
+    role: access::Role,
     ws: WebSocketUpgrade,
     headers: HeaderMap,
-    Query(query): Query<TokenQuery>,
-    State(hub): State<Arc<Hub>>,
+    query: TokenQuery,
+    hub: Arc<Hub>,
 ) -> Response {
-    if let Some(refused) = refusal(&hub, access::Role::Ingest, &headers, &query) {
+    if let Some(refused) = refusal(&hub, role, &headers, &query) {
         return refused;
     }
-    let max = hub.options.max_message_bytes;
-    ws.max_message_size(max)
-        .max_frame_size(max)
-        .on_upgrade(move |socket| ingest::serve_headset(socket, hub))
-}
-
-async fn watch_upgrade(
-    ws: WebSocketUpgrade,
-    headers: HeaderMap,
-    Query(query): Query<TokenQuery>,
-    State(hub): State<Arc<Hub>>,
-) -> Response {
-    if let Some(refused) = refusal(&hub, access::Role::Watch, &headers, &query) {
-        return refused;
+    let max = match role {
+        access::Role::Ingest => hub.options.max_message_bytes,
+        // Viewers send small JSON requests: a frame must not buffer more than a message may hold.
+        access::Role::Watch => VIEWER_MESSAGE_BYTES,
+    };
+    let ws = ws.max_message_size(max).max_frame_size(max);
+    match role {
+        access::Role::Ingest => ws.on_upgrade(move |socket| ingest::serve_headset(socket, hub)),
+        access::Role::Watch => ws.on_upgrade(move |socket| watch::serve_viewer(socket, hub)),
     }
-    // Viewers send small JSON requests: a frame must not buffer more than a message may hold.
-    ws.max_message_size(VIEWER_MESSAGE_BYTES)
-        .max_frame_size(VIEWER_MESSAGE_BYTES)
-        .on_upgrade(move |socket| watch::serve_viewer(socket, hub))
 }
 
 #[derive(Serialize)]

@@ -6,7 +6,7 @@
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard};
 
-pub struct DropOldestQueue<T> {
+pub(crate) struct DropOldestQueue<T> {
     state: Mutex<State<T>>,
     ready: Condvar,
     capacity: usize,
@@ -19,7 +19,7 @@ struct State<T> {
 
 /// What `push` did.
 #[derive(Debug, PartialEq)]
-pub enum Pushed<T> {
+pub(crate) enum Pushed<T> {
     Queued,
     /// Queued, and this oldest item was dropped to make room.
     DroppedOldest(T),
@@ -29,7 +29,7 @@ pub enum Pushed<T> {
 
 impl<T> DropOldestQueue<T> {
     /// A capacity of 0 is taken as 1.
-    pub fn new(capacity: usize) -> Self {
+    pub(crate) fn new(capacity: usize) -> Self {
         Self {
             state: Mutex::new(State {
                 items: VecDeque::with_capacity(capacity.max(1)),
@@ -47,7 +47,7 @@ impl<T> DropOldestQueue<T> {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    pub fn push(&self, item: T) -> Pushed<T> {
+    pub(crate) fn push(&self, item: T) -> Pushed<T> {
         let mut state = self.lock();
         if state.closed {
             return Pushed::Closed(item);
@@ -67,7 +67,7 @@ impl<T> DropOldestQueue<T> {
     }
 
     /// The oldest item, waiting for one; `None` once the queue is closed and empty.
-    pub fn pop(&self) -> Option<T> {
+    pub(crate) fn pop(&self) -> Option<T> {
         let mut state = self.lock();
         loop {
             if let Some(item) = state.items.pop_front() {
@@ -84,17 +84,13 @@ impl<T> DropOldestQueue<T> {
     }
 
     /// Refuses further pushes; items already queued are still popped.
-    pub fn close(&self) {
+    pub(crate) fn close(&self) {
         self.lock().closed = true;
         self.ready.notify_all();
     }
 
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.lock().items.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
     }
 }
 

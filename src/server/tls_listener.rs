@@ -20,7 +20,7 @@ pub(super) struct TlsListener {
 }
 
 impl TlsListener {
-    pub fn new(
+    pub(crate) fn new(
         tcp: TcpListener,
         config: Arc<rustls::ServerConfig>,
         handshake_timeout: Duration,

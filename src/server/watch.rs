@@ -3,13 +3,12 @@
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use futures_util::{SinkExt, StreamExt};
 use tokio::sync::broadcast::error::{RecvError, TryRecvError};
 
-use super::{Hub, HubEvent};
+use super::{Hub, HubEvent, Keepalive};
 use crate::protocol::{
     parse_text, Convention, ErrorCode, ProtocolError, ServerMessage, ViewerMessage, VIEWER_TYPES,
 };
@@ -150,11 +149,7 @@ where
         .then(|| tokio::time::Instant::now() + hub.options.drain_timeout / 2);
     let mut reply = Some(sessions());
     let mut lagged: u64 = 0;
-    let idle_timeout = hub.options.idle_timeout;
-    let mut keepalive = tokio::time::interval((idle_timeout / 3).max(Duration::from_millis(10)));
-    keepalive.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    keepalive.tick().await;
-    let mut last_heard = tokio::time::Instant::now();
+    let mut keepalive = Keepalive::start(hub.options.idle_timeout).await;
     let mut reason = "server shutting down".to_string();
     loop {
         if let Some(message) = reply.take() {
@@ -203,7 +198,7 @@ where
                 Err(RecvError::Closed) => break,
             },
             message = stream.next() => {
-                last_heard = tokio::time::Instant::now();
+                keepalive.heard();
                 match message {
                     Some(Ok(Message::Text(t))) => Some(text(&handle_request(&hub, &mut viewer, t.as_str()))),
                     Some(Ok(Message::Binary(_))) => Some(text(&ServerMessage::error(
@@ -221,9 +216,9 @@ where
                 }
             },
             // Browsers answer WebSocket pings by themselves: only a vanished viewer goes silent.
-            _ = keepalive.tick() => {
-                if last_heard.elapsed() > idle_timeout {
-                    reason = format!("idle: nothing received for {} s", idle_timeout.as_secs_f64());
+            due = keepalive.ping_due() => {
+                if let Err(idle) = due {
+                    reason = idle;
                     tracing::info!("viewer {reason}: disconnecting it");
                     break;
                 }
