@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::Instant;
 
-use mrptv_engine::eval::{evaluate, EvalError, EvalOptions, Report};
+use mrptv_engine::eval::{evaluate, EvalError, EvalOptions, Observation, Report};
 
 use crate::protocol::Encoding;
 use crate::recording::{FrameEntry, Recording, RecordingError, RecordingWriter};
@@ -227,6 +227,25 @@ pub fn process_recording(
         p.writer.flush().map_err(io_error(p.path))?;
     }
     Ok(totals)
+}
+
+/// Runs `recording` through a pipeline with `config` again and keeps what the loss budget needs
+/// of every frame; `progress` is told the frames done.
+pub fn observe_recording(
+    recording: &Recording,
+    config: PipelineConfig,
+    mut progress: impl FnMut(usize),
+) -> Result<Vec<Observation>, OfflineError> {
+    let mut pipeline = Pipeline::new(recording.rig.clone(), config)?;
+    let mut totals = RunTotals::for_pipeline(&pipeline);
+    let mut observations = Vec::with_capacity(recording.frames.len());
+    for entry in &recording.frames {
+        let (left, right) = recording.load(entry)?;
+        let output = push_pixels(&mut pipeline, &mut totals, entry, &left, &right)?;
+        observations.push(Observation::of(&output, entry.world_from_rig));
+        progress(observations.len());
+    }
+    Ok(observations)
 }
 
 /// A synthetic scenario run end to end in memory: what to render, how to process and score it,

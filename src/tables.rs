@@ -109,10 +109,25 @@ pub(crate) fn parse_numeric(
         });
     };
     let names: Vec<&str> = headers[variant].split(',').collect();
+    let rows = parse_rows(path, lines, &names, |_| true)?;
+    Ok((variant, rows))
+}
+
+/// The data rows under a header of `names`; a column `numeric` refuses is not parsed (its
+/// value is NaN).
+fn parse_rows(
+    path: &Path,
+    lines: impl Iterator<Item = std::io::Result<String>>,
+    names: &[&str],
+    numeric: impl Fn(usize) -> bool,
+) -> Result<Vec<Row>, TableError> {
     let mut rows = Vec::new();
     for (n, line) in lines.enumerate() {
         let line_no = n + 2;
-        let line = line.map_err(io)?;
+        let line = line.map_err(|error| TableError::Io {
+            path: path.to_path_buf(),
+            error,
+        })?;
         let line = line.trim_end_matches('\r');
         if line.trim().is_empty() {
             continue;
@@ -126,7 +141,11 @@ pub(crate) fn parse_numeric(
             });
         }
         let mut values = Vec::with_capacity(fields.len());
-        for (field, name) in fields.iter().zip(&names) {
+        for (column, (field, name)) in fields.iter().zip(names).enumerate() {
+            if !numeric(column) {
+                values.push(f64::NAN);
+                continue;
+            }
             match field.trim().parse::<f64>() {
                 Ok(v) if v.is_finite() => values.push(v),
                 _ => {
@@ -143,7 +162,7 @@ pub(crate) fn parse_numeric(
             values,
         });
     }
-    Ok((variant, rows))
+    Ok(rows)
 }
 
 /// A non-negative whole number from a numeric field.
@@ -168,19 +187,76 @@ fn vector(values: &[f64]) -> Vector3<f64> {
     Vector3::new(values[0], values[1], values[2])
 }
 
+/// Columns that may follow `TRUTH_HEADER` and say which images show the particle (0 or 1).
+const TRUTH_VISIBILITY: [&str; 2] = ["in_left", "in_right"];
+
+/// Reads `truth.csv`: `TRUTH_HEADER`, then any further columns (kept for other tools, not read),
+/// of which `in_left` and `in_right`, when both are there, say which images show the particle.
 pub fn read_truth(path: &Path) -> Result<Vec<TruthRow>, TableError> {
-    let (_, rows) = read_numeric(path, &[TRUTH_HEADER])?;
+    let file = std::fs::File::open(path).map_err(|error| TableError::Io {
+        path: path.to_path_buf(),
+        error,
+    })?;
+    let mut lines = BufReader::new(file).lines();
+    let expected = format!("'{TRUTH_HEADER}' (further columns may follow it)");
+    let header = match lines.next() {
+        Some(line) => line.map_err(|error| TableError::Io {
+            path: path.to_path_buf(),
+            error,
+        })?,
+        None => {
+            return Err(TableError::Empty {
+                path: path.to_path_buf(),
+                expected,
+            })
+        }
+    };
+    let header = header.trim_end_matches('\r').trim_start_matches('\u{feff}');
+    let names: Vec<&str> = header.split(',').map(str::trim).collect();
+    let known = TRUTH_HEADER.split(',').count();
+    if names.len() < known || names[..known].join(",") != TRUTH_HEADER {
+        return Err(TableError::Header {
+            path: path.to_path_buf(),
+            found: header.chars().take(200).collect(),
+            expected,
+        });
+    }
+    let visibility = TRUTH_VISIBILITY.map(|v| names.iter().position(|n| *n == v));
+    let rows = parse_rows(path, lines, &names, |c| {
+        c < known || visibility.contains(&Some(c))
+    })?;
     rows.iter()
         .map(|r| {
+            let visible = match visibility {
+                [Some(l), Some(r_)] => Some([
+                    flag(path, r, l, TRUTH_VISIBILITY[0])?,
+                    flag(path, r, r_, TRUTH_VISIBILITY[1])?,
+                ]),
+                _ => None,
+            };
             Ok(TruthRow {
                 frame: whole(path, r, 0, "frame")?,
                 t_s: r.values[1],
                 pid: whole(path, r, 2, "pid")?,
                 position: point(&r.values[3..6]),
                 velocity: vector(&r.values[6..9]),
+                visible,
             })
         })
         .collect()
+}
+
+/// A 0 or 1 field as a flag.
+fn flag(path: &Path, row: &Row, column: usize, name: &str) -> Result<bool, TableError> {
+    match row.values[column] {
+        v if v == 0.0 => Ok(false),
+        v if v == 1.0 => Ok(true),
+        v => Err(TableError::Row {
+            path: path.to_path_buf(),
+            line: row.line,
+            message: format!("{name} {v} is not 0 or 1"),
+        }),
+    }
 }
 
 /// Reads `tracks.csv` with or without the uncertainty columns.
@@ -315,6 +391,34 @@ mod tests {
         let e = read_tracks(&p).unwrap_err().to_string();
         assert!(
             e.ends_with("t.csv line 3: y 'abc' is not a finite number"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn truth_may_carry_further_columns_and_say_what_each_image_shows() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let p = write(
+            &dir,
+            "truth.csv",
+            "frame,t_s,pid,x,y,z,u,v,w,in_left,in_right,note\n0,0,1,0,0,1,0,0,0,1,0,edge\n",
+        );
+        let rows = read_truth(&p).expect("truth with further columns");
+        assert_eq!(rows[0].visible, Some([true, false]));
+        let p = write(
+            &dir,
+            "plain.csv",
+            "frame,t_s,pid,x,y,z,u,v,w,note\n0,0,1,0,0,1,0,0,0,x\n",
+        );
+        assert_eq!(read_truth(&p).expect("plain")[0].visible, None);
+        let p = write(
+            &dir,
+            "bad.csv",
+            "frame,t_s,pid,x,y,z,u,v,w,in_left,in_right\n0,0,1,0,0,1,0,0,0,2,1\n",
+        );
+        let e = read_truth(&p).unwrap_err().to_string();
+        assert!(
+            e.ends_with("bad.csv line 2: in_left 2 is not 0 or 1"),
             "{e}"
         );
     }

@@ -91,6 +91,49 @@ fn synth_process_eval_round_trip_is_deterministic() {
     assert!(report["association_rate"].as_f64().expect("number") > 0.95);
     let text = ok(&["eval", s(&rec.join("truth.csv")), s(&t1)]);
     assert!(text.contains("ghost rate") && text.contains("by depth"));
+    // The truth sits in its recording: the loss budget follows every measurable particle-frame
+    // to one fate, and "measured" ones are among the associated.
+    let budget = &report["loss_budget"];
+    let rows: Vec<u64> = budget["losses"]
+        .as_array()
+        .expect("losses")
+        .iter()
+        .map(|l| l["rows"].as_u64().expect("rows"))
+        .collect();
+    assert_eq!(rows.len(), 9, "{budget}");
+    assert_eq!(
+        rows.iter().sum::<u64>(),
+        budget["measurable"].as_u64().expect("n")
+    );
+    assert!(rows[8] > 0 && rows[8] <= report["associated_rows"].as_u64().expect("assoc"));
+    assert!(text.contains("loss budget: ") && text.contains("3D track broken in the window"));
+    let plain = ok(&["eval", s(&rec.join("truth.csv")), s(&t1), "--no-budget"]);
+    assert!(!plain.contains("loss budget"), "{plain}");
+
+    // A truth with further columns (another generator's, saying which images show each
+    // particle) is read; hiding a particle from one image takes it out of the measurable set.
+    let truth = fs::read_to_string(rec.join("truth.csv")).expect("truth");
+    let mut lines = truth.lines();
+    let mut wider = format!(
+        "{},in_left,in_right,source\n",
+        lines.next().expect("header")
+    );
+    let mut hidden = 0;
+    for (i, line) in lines.enumerate() {
+        let right = if i % 10 == 0 { 0 } else { 1 };
+        hidden += 1 - right;
+        wider.push_str(&format!("{line},1,{right},other\n"));
+    }
+    assert!(hidden > 0);
+    let wide = rec.join("truth-wide.csv");
+    fs::write(&wide, wider).expect("write");
+    let json = ok(&["eval", s(&wide), s(&t1), "--json"]);
+    let wide_report: serde_json::Value = serde_json::from_str(&json).expect("json");
+    assert_eq!(wide_report["associated_rows"], report["associated_rows"]);
+    assert!(
+        wide_report["loss_budget"]["measurable"].as_u64() < budget["measurable"].as_u64(),
+        "{json}"
+    );
 }
 
 /// `--field` bins the vectors of `--out` on a world grid: one row per cell, counts adding up to

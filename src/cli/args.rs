@@ -37,7 +37,7 @@ impl ConfigFile {
 }
 
 /// `--method` and `--depth-range`: the base config's choices and the measurement volume.
-#[derive(clap::Args)]
+#[derive(clap::Args, Clone)]
 pub struct ConfigChoices {
     /// Use the published method's choices (no mrptv improvements) as the base config.
     #[arg(long)]

@@ -37,6 +37,23 @@ pub fn scenario_help() -> String {
         .join("\n")
 }
 
+/// The config a run of recording `rec` uses: `--config`, else the recording's own, else the
+/// defaults.
+pub(crate) fn load_config(
+    rec: &std::path::Path,
+    file: &args::ConfigFile,
+) -> Result<mrptv_engine::PipelineConfig> {
+    match file.or_in_recording(rec) {
+        Some(path) => {
+            if file.config.is_none() {
+                eprintln!("using {}", path.display());
+            }
+            Ok(mrptv::config::load(&path)?)
+        }
+        None => Ok(mrptv_engine::PipelineConfig::default()),
+    }
+}
+
 fn progress_bar(len: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len as u64);
     let style = ProgressStyle::with_template(

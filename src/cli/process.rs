@@ -11,10 +11,9 @@ use mrptv::rerun_log::{start_proxy, RerunLogger, RerunOptions, RerunSink};
 use mrptv::tables::{self, TrackRow};
 use mrptv::vtk::{self, VtkFormat};
 use mrptv_engine::field::{self, CellSummary, FieldGrid, FieldSample};
-use mrptv_engine::PipelineConfig;
 
 use super::args::{ConfigChoices, ConfigFile, RerunArgs};
-use super::{create_output, progress_bar, runtime, termination};
+use super::{create_output, load_config, progress_bar, runtime, termination};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -226,17 +225,4 @@ fn report_rerun(logger: RerunLogger, sinks: &[RerunSink]) {
             " (a sink failed: see the warning above; tracks.csv is complete)"
         }
     );
-}
-
-/// The config `--config` names, else the recording's own (said on stderr), else the defaults.
-fn load_config(rec: &Path, file: &ConfigFile) -> Result<PipelineConfig> {
-    match file.or_in_recording(rec) {
-        Some(path) => {
-            if file.config.is_none() {
-                eprintln!("using {}", path.display());
-            }
-            Ok(mrptv::config::load(&path)?)
-        }
-        None => Ok(PipelineConfig::default()),
-    }
 }

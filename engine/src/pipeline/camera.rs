@@ -19,6 +19,18 @@ pub(super) struct CameraOutput {
     pub(super) detection_of: Vec<usize>,
 }
 
+impl CameraOutput {
+    /// Per detection (of `detections`), whether its feature continues a track from an earlier
+    /// frame.
+    pub(super) fn continued(&self, detections: usize) -> Vec<bool> {
+        let mut continued = vec![false; detections];
+        for (feature, &d) in self.linked.iter().zip(&self.detection_of) {
+            continued[d] |= feature.age > 1;
+        }
+        continued
+    }
+}
+
 impl Camera {
     pub(super) fn new() -> Self {
         Self {

@@ -271,8 +271,10 @@ impl Pipeline {
             .iter()
             .filter(|c| c.detector.last_contrast_c() < self.config.detect.contrast_c)
             .count();
-        out.stats.linked_left = left.linked.iter().filter(|f| f.age > 1).count();
-        out.stats.linked_right = right.linked.iter().filter(|f| f.age > 1).count();
+        out.continued_left = left.continued(out.detections_left.len());
+        out.continued_right = right.continued(out.detections_right.len());
+        out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();
+        out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
         (left, right)
     }
 

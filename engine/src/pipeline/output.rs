@@ -126,6 +126,10 @@ pub struct FrameOutput {
     pub detections_left: Vec<Detection>,
     /// Its right image's detections, in raster order.
     pub detections_right: Vec<Detection>,
+    /// Per left detection, whether it continues a per-camera track from an earlier frame.
+    pub continued_left: Vec<bool>,
+    /// See `continued_left`.
+    pub continued_right: Vec<bool>,
     /// Its particles matched in both cameras.
     pub points: Vec<MatchedPoint>,
     /// Vectors for this frame, without latency (see above).

@@ -36,6 +36,9 @@ pub struct TruthRow {
     pub position: Point3<f64>,
     /// Velocity, world frame, m/s.
     pub velocity: Vector3<f64>,
+    /// Whether the left and the right image show it, where the truth says (`None`: not stated;
+    /// projected inside an image counts as shown).
+    pub visible: Option<[bool; 2]>,
 }
 
 /// One rendered frame with its truth.
@@ -170,6 +173,7 @@ impl Synthesizer {
                 pid: p.pid,
                 position: p.position,
                 velocity: spec.flow.velocity(&p.position, t_s),
+                visible: None,
             });
         }
         let left = finish_image(spec, &left, &self.fixed_left, &mut self.noise_rng);

@@ -15,6 +15,9 @@ use crate::field::FieldSample;
 use crate::synth::TruthRow;
 use crate::VelocityVector;
 
+mod budget;
+pub use budget::{loss_budget, Fate, Loss, LossBudget, Observation};
+
 /// A measured vector as `tracks.csv` holds it (one row), what scoring reads.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrackRow {
@@ -338,31 +341,47 @@ fn fraction(a: usize, b: usize) -> f64 {
 }
 
 /// Which truth particle-frames a centred velocity can describe: their particle lives through the
-/// whole +-M window around them.
-struct Measurable {
+/// whole +-M window around them and, where the truth says which images show it, both images show
+/// it in every frame of the window.
+pub(crate) struct Measurable {
     lifetimes: BTreeMap<u64, (u64, u64)>,
+    /// Per particle whose truth states visibility, the frames both images show it.
+    seen_in_both: BTreeMap<u64, BTreeSet<u64>>,
     window_frames: u64,
 }
 
 impl Measurable {
-    fn new(truth: &[TruthRow], window_frames: u64) -> Self {
+    pub(crate) fn new(truth: &[TruthRow], window_frames: u64) -> Self {
         let mut lifetimes: BTreeMap<u64, (u64, u64)> = BTreeMap::new();
+        let mut seen_in_both: BTreeMap<u64, BTreeSet<u64>> = BTreeMap::new();
         for t in truth {
             let life = lifetimes.entry(t.pid).or_insert((t.frame, t.frame));
             life.0 = life.0.min(t.frame);
             life.1 = life.1.max(t.frame);
+            if let Some(visible) = t.visible {
+                let frames = seen_in_both.entry(t.pid).or_default();
+                if visible == [true, true] {
+                    frames.insert(t.frame);
+                }
+            }
         }
         Self {
             lifetimes,
+            seen_in_both,
             window_frames,
         }
     }
 
-    fn contains(&self, t: &TruthRow) -> bool {
+    pub(crate) fn contains(&self, t: &TruthRow) -> bool {
         let m = self.window_frames;
-        self.lifetimes.get(&t.pid).is_some_and(|&(first, last)| {
+        let lives = self.lifetimes.get(&t.pid).is_some_and(|&(first, last)| {
             t.frame >= first.saturating_add(m) && t.frame.saturating_add(m) <= last
-        })
+        });
+        lives
+            && self
+                .seen_in_both
+                .get(&t.pid)
+                .is_none_or(|frames| (t.frame - m..=t.frame + m).all(|f| frames.contains(&f)))
     }
 }
 
@@ -681,6 +700,7 @@ mod tests {
             pid,
             position: Point3::new(x, 0.0, 1.0),
             velocity: Vector3::new(1.0, 0.0, 0.0),
+            visible: None,
         }
     }
 

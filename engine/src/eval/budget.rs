@@ -1,0 +1,557 @@
+//! The loss budget of a run: where each measurable truth particle-frame was lost, stage by stage,
+//! and how many of those losses had a touching neighbour or a streak.
+//!
+//! A truth particle-frame is followed through the pipeline in its order: the detection it
+//! became in each image (each detection claimed by at most one truth particle, nearest first),
+//! whether that detection continued a per-camera track, the stereo pair it entered, the 3D track
+//! that pair belongs to over the +-M window, and whether a vector describes it. Its fate is the
+//! first stage it failed.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt;
+
+use nalgebra::Isometry3;
+use serde::Serialize;
+
+use super::{associate, EvalOptions, Measurable, TrackRow};
+use crate::geometry::{PixelPoint, StereoRig};
+use crate::pipeline::{FrameOutput, MatchedPoint};
+use crate::spatial::median;
+use crate::synth::TruthRow;
+
+/// What the pipeline made of one frame, as far as the loss budget needs it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Observation {
+    /// The frame's index.
+    pub frame: u64,
+    /// The headset's pose (`None`: world = rig).
+    pub world_from_rig: Option<Isometry3<f64>>,
+    /// Left and right detections: centroid, raw pixels, and equivalent diameter.
+    pub detections: [Vec<(PixelPoint, f64)>; 2],
+    /// Per detection, whether it continues a per-camera track.
+    pub continued: [Vec<bool>; 2],
+    /// The stereo-matched particles.
+    pub points: Vec<MatchedPoint>,
+}
+
+impl Observation {
+    /// The observation of a frame's output; `world_from_rig` is the pose it was pushed with.
+    pub fn of(output: &FrameOutput, world_from_rig: Option<Isometry3<f64>>) -> Self {
+        let centroids = |d: &[crate::Detection]| {
+            d.iter()
+                .map(|d| (d.centroid, d.diameter_px))
+                .collect::<Vec<_>>()
+        };
+        Self {
+            frame: output.frame_index,
+            world_from_rig,
+            detections: [
+                centroids(&output.detections_left),
+                centroids(&output.detections_right),
+            ],
+            continued: [
+                output.continued_left.clone(),
+                output.continued_right.clone(),
+            ],
+            points: output.points.clone(),
+        }
+    }
+}
+
+/// Where a measurable truth particle-frame was lost: the first stage it failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Fate {
+    /// No detection of its own in the left image.
+    UndetectedLeft,
+    /// No detection of its own in the right image.
+    UndetectedRight,
+    /// Detected, but the left detection does not continue a track.
+    UnlinkedLeft,
+    /// Detected, but the right detection does not continue a track.
+    UnlinkedRight,
+    /// Linked in both, but its left detection entered no stereo pair.
+    Unmatched,
+    /// Its left detection was paired with another particle's right detection (or a clutter's).
+    WrongPartner,
+    /// Matched right, but not by one 3D track through the whole +-M window.
+    TrackBroken,
+    /// Its 3D track spans the window, but no vector describes it (rejected or not fitted).
+    NoVelocity,
+    /// A vector describes it.
+    Measured,
+}
+
+impl Fate {
+    const ALL: [Fate; 9] = [
+        Fate::UndetectedLeft,
+        Fate::UndetectedRight,
+        Fate::UnlinkedLeft,
+        Fate::UnlinkedRight,
+        Fate::Unmatched,
+        Fate::WrongPartner,
+        Fate::TrackBroken,
+        Fate::NoVelocity,
+        Fate::Measured,
+    ];
+
+    fn label(self) -> &'static str {
+        match self {
+            Fate::UndetectedLeft => "not detected, left",
+            Fate::UndetectedRight => "not detected, right",
+            Fate::UnlinkedLeft => "detected, not linked, left",
+            Fate::UnlinkedRight => "detected, not linked, right",
+            Fate::Unmatched => "linked, not matched",
+            Fate::WrongPartner => "matched to the wrong partner",
+            Fate::TrackBroken => "3D track broken in the window",
+            Fate::NoVelocity => "no velocity (rejected or unfitted)",
+            Fate::Measured => "measured",
+        }
+    }
+}
+
+/// One line of the budget.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Loss {
+    /// The stage.
+    pub fate: Fate,
+    /// Measurable particle-frames with this fate.
+    pub rows: usize,
+    /// Their share of the measurable particle-frames.
+    pub share: f64,
+    /// The share of them with another particle's image within a particle diameter (either
+    /// image).
+    pub with_neighbour: f64,
+    /// The share of them moving more than a particle diameter per frame in either image: motion
+    /// blur stretches their images into streaks.
+    pub streaked: f64,
+}
+
+/// Where a run lost its measurable truth.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LossBudget {
+    /// M: a measurable particle-frame is seen by both images for the 2M + 1 frames around it.
+    pub window_frames: u64,
+    /// Measurable particle-frames followed.
+    pub measurable: usize,
+    /// The median equivalent diameter of the run's detections, pixels: the scale of "touching"
+    /// and "streaked".
+    pub particle_diameter_px: f64,
+    /// A truth particle claims a detection whose centroid lies within this of its image, pixels.
+    pub detection_radius_px: f64,
+    /// Every fate, in pipeline order.
+    pub losses: Vec<Loss>,
+}
+
+/// A truth particle's images in one frame, and what became of them.
+#[derive(Debug, Clone, Copy, Default)]
+struct Followed {
+    /// Its images, raw pixels, where both cameras show it.
+    px: Option<[PixelPoint; 2]>,
+    /// The detections it claimed, per image.
+    detection: [Option<usize>; 2],
+    touching: bool,
+}
+
+/// The loss budget of `observations` (one per frame pushed) and the `tracks` they gave, against
+/// `truth`, for particle-frames measurable over `options.window_frames`.
+pub fn loss_budget(
+    truth: &[TruthRow],
+    tracks: &[TrackRow],
+    observations: &[Observation],
+    rig: &StereoRig,
+    options: &EvalOptions,
+) -> LossBudget {
+    let diameter = median_diameter(observations);
+    let radius = (0.5 * diameter).max(1.5);
+    let by_frame = truth_by_frame(truth);
+    let mut followed: BTreeMap<(u64, u64), Followed> = BTreeMap::new();
+    for o in observations {
+        let Some(rows) = by_frame.get(&o.frame) else {
+            continue;
+        };
+        follow_frame(o, rows, rig, radius, diameter, &mut followed);
+    }
+    let measured: BTreeSet<(u64, u64)> = associate(tracks, &by_frame, options.radius_m)
+        .associations
+        .iter()
+        .map(|a| (a.truth.frame, a.truth.pid))
+        .collect();
+    let observed: BTreeMap<u64, &Observation> = observations.iter().map(|o| (o.frame, o)).collect();
+    let measurable = Measurable::new(truth, options.window_frames);
+    let fates = Fates {
+        followed: &followed,
+        observed: &observed,
+        measured: &measured,
+        m: options.window_frames,
+    };
+    let mut tally: BTreeMap<Fate, (usize, usize, usize)> = BTreeMap::new();
+    let mut n = 0;
+    for t in truth.iter().filter(|t| observed.contains_key(&t.frame)) {
+        let Some(f) = followed.get(&(t.frame, t.pid)) else {
+            continue;
+        };
+        if f.px.is_none() || !measurable.contains(t) {
+            continue;
+        }
+        n += 1;
+        let entry = tally.entry(fates.of(t)).or_default();
+        entry.0 += 1;
+        entry.1 += usize::from(f.touching);
+        entry.2 += usize::from(streaked(t, &followed, diameter));
+    }
+    LossBudget {
+        window_frames: options.window_frames,
+        measurable: n,
+        particle_diameter_px: diameter,
+        detection_radius_px: radius,
+        losses: Fate::ALL
+            .iter()
+            .map(|&fate| {
+                let (rows, touching, streaks) = tally.get(&fate).copied().unwrap_or_default();
+                Loss {
+                    fate,
+                    rows,
+                    share: super::fraction(rows, n),
+                    with_neighbour: super::fraction(touching, rows),
+                    streaked: super::fraction(streaks, rows),
+                }
+            })
+            .collect(),
+    }
+}
+
+fn median_diameter(observations: &[Observation]) -> f64 {
+    let mut d: Vec<f64> = observations
+        .iter()
+        .flat_map(|o| o.detections.iter().flatten().map(|&(_, d)| d))
+        .collect();
+    if d.is_empty() {
+        return 3.0;
+    }
+    median(&mut d)
+}
+
+fn truth_by_frame(truth: &[TruthRow]) -> BTreeMap<u64, Vec<TruthRow>> {
+    let mut by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
+    for t in truth {
+        by_frame.entry(t.frame).or_default().push(*t);
+    }
+    by_frame
+}
+
+/// Projects one frame's truth into both images, marks touching images and gives each visible
+/// particle the detections it claims (one-to-one, nearest pairs first, within `radius`).
+fn follow_frame(
+    o: &Observation,
+    rows: &[TruthRow],
+    rig: &StereoRig,
+    radius: f64,
+    diameter: f64,
+    followed: &mut BTreeMap<(u64, u64), Followed>,
+) {
+    let rig_from_world = o.world_from_rig.map(|p| p.inverse());
+    let images: Vec<Option<[PixelPoint; 2]>> = rows
+        .iter()
+        .map(|t| {
+            let p = rig_from_world.map_or(t.position, |r| r * t.position);
+            let (l, r) = rig.project(&p);
+            let shown = t.visible.unwrap_or([true, true]);
+            match (l, r) {
+                (Some(l), Some(r))
+                    if shown == [true, true] && rig.contains(l) && rig.contains(r) =>
+                {
+                    Some([l, r])
+                }
+                _ => None,
+            }
+        })
+        .collect();
+    let mut claimed = [vec![None; rows.len()], vec![None; rows.len()]];
+    for (camera, claims) in claimed.iter_mut().enumerate() {
+        claim_detections(&images, camera, &o.detections[camera], radius, claims);
+    }
+    for (i, t) in rows.iter().enumerate() {
+        let touching = images[i].is_some_and(|a| {
+            images.iter().enumerate().any(|(j, b)| {
+                j != i && b.is_some_and(|b| (0..2).any(|c| distance(a[c], b[c]) < diameter))
+            })
+        });
+        followed.insert(
+            (t.frame, t.pid),
+            Followed {
+                px: images[i],
+                detection: [claimed[0][i], claimed[1][i]],
+                touching,
+            },
+        );
+    }
+}
+
+/// In one image, each visible truth particle paired with at most one detection and vice versa,
+/// nearest first, within `radius`.
+fn claim_detections(
+    images: &[Option<[PixelPoint; 2]>],
+    camera: usize,
+    detections: &[(PixelPoint, f64)],
+    radius: f64,
+    claims: &mut [Option<usize>],
+) {
+    let mut pairs = Vec::new();
+    for (ti, px) in images.iter().enumerate() {
+        let Some(px) = px else { continue };
+        for (di, &(d, _)) in detections.iter().enumerate() {
+            let dist = distance(px[camera], d);
+            if dist <= radius {
+                pairs.push((dist, ti, di));
+            }
+        }
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let mut taken = vec![false; detections.len()];
+    for (_, ti, di) in pairs {
+        if claims[ti].is_none() && !taken[di] {
+            claims[ti] = Some(di);
+            taken[di] = true;
+        }
+    }
+}
+
+fn distance(a: PixelPoint, b: PixelPoint) -> f64 {
+    (a.x - b.x).hypot(a.y - b.y)
+}
+
+/// Whether the particle's image moves more than `diameter` to the next (or from the previous)
+/// frame in either image.
+fn streaked(t: &TruthRow, followed: &BTreeMap<(u64, u64), Followed>, diameter: f64) -> bool {
+    let Some(here) = followed.get(&(t.frame, t.pid)).and_then(|f| f.px) else {
+        return false;
+    };
+    let step = |frame: u64| followed.get(&(frame, t.pid)).and_then(|f| f.px);
+    [step(t.frame + 1), t.frame.checked_sub(1).and_then(step)]
+        .into_iter()
+        .flatten()
+        .any(|other| (0..2).any(|c| distance(here[c], other[c]) > diameter))
+}
+
+/// Decides the fate of measurable particle-frames.
+struct Fates<'a> {
+    followed: &'a BTreeMap<(u64, u64), Followed>,
+    observed: &'a BTreeMap<u64, &'a Observation>,
+    measured: &'a BTreeSet<(u64, u64)>,
+    m: u64,
+}
+
+impl Fates<'_> {
+    fn of(&self, t: &TruthRow) -> Fate {
+        let Some(obs) = self.observed.get(&t.frame) else {
+            return Fate::UndetectedLeft;
+        };
+        let f = self
+            .followed
+            .get(&(t.frame, t.pid))
+            .copied()
+            .unwrap_or_default();
+        let [Some(dl), Some(dr)] = f.detection else {
+            return if f.detection[0].is_none() {
+                Fate::UndetectedLeft
+            } else {
+                Fate::UndetectedRight
+            };
+        };
+        if !obs.continued[0].get(dl).copied().unwrap_or(false) {
+            return Fate::UnlinkedLeft;
+        }
+        if !obs.continued[1].get(dr).copied().unwrap_or(false) {
+            return Fate::UnlinkedRight;
+        }
+        let Some(point) = self.point_of(t.frame, t.pid) else {
+            return if self.left_point(obs, dl).is_some() {
+                Fate::WrongPartner
+            } else {
+                Fate::Unmatched
+            };
+        };
+        let window = t.frame.saturating_sub(self.m)..=t.frame + self.m;
+        let whole = window.into_iter().all(|g| {
+            self.point_of(g, t.pid)
+                .is_some_and(|p| p.track_id == point.track_id)
+        });
+        if !whole {
+            Fate::TrackBroken
+        } else if self.measured.contains(&(t.frame, t.pid)) {
+            Fate::Measured
+        } else {
+            Fate::NoVelocity
+        }
+    }
+
+    /// The stereo pair made of this particle's own left and right detections in `frame`.
+    fn point_of(&self, frame: u64, pid: u64) -> Option<&MatchedPoint> {
+        let obs = self.observed.get(&frame)?;
+        let f = self.followed.get(&(frame, pid))?;
+        let [Some(dl), Some(dr)] = f.detection else {
+            return None;
+        };
+        let (l, r) = (obs.detections[0][dl].0, obs.detections[1][dr].0);
+        obs.points
+            .iter()
+            .find(|p| p.left_px == l && p.right_px == r)
+    }
+
+    /// The stereo pair its left detection entered, whatever its partner.
+    fn left_point<'o>(&self, obs: &'o Observation, dl: usize) -> Option<&'o MatchedPoint> {
+        let l = obs.detections[0][dl].0;
+        obs.points.iter().find(|p| p.left_px == l)
+    }
+}
+
+fn pct(v: f64) -> String {
+    format!("{:.1} %", 100.0 * v)
+}
+
+impl fmt::Display for LossBudget {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "loss budget: {} measurable particle-frames (both images show them for the {} frames \
+             around), each at the first stage it failed; particle images {:.1} px, a detection \
+             claimed within {:.1} px",
+            self.measurable,
+            2 * self.window_frames + 1,
+            self.particle_diameter_px,
+            self.detection_radius_px
+        )?;
+        writeln!(
+            f,
+            "  {:<36} {:>8} {:>8}  {:>14} {:>9}",
+            "stage", "rows", "share", "touching", "streaked"
+        )?;
+        for l in &self.losses {
+            writeln!(
+                f,
+                "  {:<36} {:>8} {:>8}  {:>14} {:>9}",
+                l.fate.label(),
+                l.rows,
+                pct(l.share),
+                pct(l.with_neighbour),
+                pct(l.streaked)
+            )?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::parallel_rig;
+    use nalgebra::{Point3, Vector3};
+
+    /// One particle standing still at frames 0..=10, seen and matched on one 3D track in every
+    /// frame, with a vector at frame 5; `edit` changes what the pipeline saw.
+    fn budget_of(edit: impl Fn(&mut Vec<Observation>), vector: bool) -> LossBudget {
+        let rig = parallel_rig(640, 480, 500.0, 0.1);
+        let position = Point3::new(0.05, 0.02, 1.0);
+        let (l, r) = rig.project(&position);
+        let (l, r) = (l.expect("left"), r.expect("right"));
+        let truth: Vec<TruthRow> = (0..=10)
+            .map(|frame| TruthRow {
+                frame,
+                t_s: frame as f64 * 0.1,
+                pid: 7,
+                position,
+                velocity: Vector3::zeros(),
+                visible: Some([true, true]),
+            })
+            .collect();
+        let mut observations: Vec<Observation> = (0..=10)
+            .map(|frame| Observation {
+                frame,
+                world_from_rig: None,
+                detections: [vec![(l, 3.0)], vec![(r, 3.0)]],
+                continued: [vec![frame > 0], vec![frame > 0]],
+                points: vec![MatchedPoint {
+                    track_id: 1,
+                    point_in_world: position,
+                    left_px: l,
+                    right_px: r,
+                    depth_m: 1.0,
+                }],
+            })
+            .collect();
+        edit(&mut observations);
+        let tracks: Vec<TrackRow> = vector
+            .then(|| TrackRow {
+                frame: 5,
+                t_s: 0.5,
+                track_id: 1,
+                position,
+                velocity: Vector3::zeros(),
+                sigma: None,
+            })
+            .into_iter()
+            .collect();
+        let options = EvalOptions {
+            window_frames: 5,
+            ..Default::default()
+        };
+        loss_budget(&truth, &tracks, &observations, &rig, &options)
+    }
+
+    fn only_fate(b: &LossBudget) -> Fate {
+        assert_eq!(b.measurable, 1, "{b}");
+        let hit: Vec<&Loss> = b.losses.iter().filter(|l| l.rows > 0).collect();
+        assert_eq!(hit.len(), 1, "{b}");
+        hit[0].fate
+    }
+
+    #[test]
+    fn each_particle_frame_goes_to_the_first_stage_it_failed() {
+        assert_eq!(only_fate(&budget_of(|_| {}, true)), Fate::Measured);
+        assert_eq!(only_fate(&budget_of(|_| {}, false)), Fate::NoVelocity);
+        let moved = |o: &mut Vec<Observation>| o[5].detections[1][0].0.x += 10.0;
+        assert_eq!(only_fate(&budget_of(moved, true)), Fate::UndetectedRight);
+        let unlinked = |o: &mut Vec<Observation>| o[5].continued[0][0] = false;
+        assert_eq!(only_fate(&budget_of(unlinked, true)), Fate::UnlinkedLeft);
+        let unmatched = |o: &mut Vec<Observation>| o[5].points.clear();
+        assert_eq!(only_fate(&budget_of(unmatched, true)), Fate::Unmatched);
+        let wrong = |o: &mut Vec<Observation>| o[5].points[0].right_px.x -= 30.0;
+        assert_eq!(only_fate(&budget_of(wrong, true)), Fate::WrongPartner);
+        let broken = |o: &mut Vec<Observation>| o[8].points[0].track_id = 2;
+        assert_eq!(only_fate(&budget_of(broken, true)), Fate::TrackBroken);
+    }
+
+    #[test]
+    fn particles_hidden_from_an_image_are_not_measurable() {
+        let b = budget_of(|_| {}, true);
+        assert_eq!(b.measurable, 1);
+        let rig = parallel_rig(640, 480, 500.0, 0.1);
+        let mut truth: Vec<TruthRow> = (0..=10)
+            .map(|frame| TruthRow {
+                frame,
+                t_s: frame as f64 * 0.1,
+                pid: 7,
+                position: Point3::new(0.05, 0.02, 1.0),
+                velocity: Vector3::zeros(),
+                visible: Some([true, true]),
+            })
+            .collect();
+        truth[9].visible = Some([true, false]);
+        let observations: Vec<Observation> = (0..=10)
+            .map(|frame| Observation {
+                frame,
+                world_from_rig: None,
+                detections: [Vec::new(), Vec::new()],
+                continued: [Vec::new(), Vec::new()],
+                points: Vec::new(),
+            })
+            .collect();
+        let options = EvalOptions {
+            window_frames: 5,
+            ..Default::default()
+        };
+        let b = loss_budget(&truth, &[], &observations, &rig, &options);
+        assert_eq!(b.measurable, 0, "{b}");
+    }
+}
