@@ -249,8 +249,8 @@ pub fn read_truth(path: &Path) -> Result<Vec<TruthRow>, TableError> {
 /// A 0 or 1 field as a flag.
 fn flag(path: &Path, row: &Row, column: usize, name: &str) -> Result<bool, TableError> {
     match row.values[column] {
-        v if v == 0.0 => Ok(false),
-        v if v == 1.0 => Ok(true),
+        0.0 => Ok(false),
+        1.0 => Ok(true),
         v => Err(TableError::Row {
             path: path.to_path_buf(),
             line: row.line,
