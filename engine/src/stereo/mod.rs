@@ -61,6 +61,11 @@ pub struct StereoConfig {
     /// similar depth can be cross-matched. 100 makes a 1 px row offset cost about as much as
     /// a 10 % diameter mismatch.
     pub weight_row: f64,
+    /// Weight of the row difference measured in epipolar bands, `(row difference / S)^2`: how
+    /// far off its row a candidate lies against how far a true pair may be. It is the same for
+    /// every image size, unlike `weight_row`'s image-height normalisation, which makes a pixel
+    /// of row error cost less the taller the image.
+    pub weight_epipolar: f64,
     /// How claims on a right feature are settled.
     pub assignment: Assignment,
     /// Weight of a track pair's past cost in its effective cost, 0..1: `effective = w * past +
@@ -82,7 +87,8 @@ impl Default for StereoConfig {
             weight_diameter: 0.100,
             weight_speed: 0.036,
             weight_brightness: 0.018,
-            weight_row: 100.0,
+            weight_row: 0.0,
+            weight_epipolar: WEIGHT_EPIPOLAR,
             assignment: Assignment::OneToOne,
             pair_memory: 0.8,
             learn_depth_range: true,
@@ -99,6 +105,7 @@ impl StereoConfig {
             assignment: Assignment::PerParticle,
             pair_memory: 0.0,
             weight_row: 1.0,
+            weight_epipolar: 0.0,
             disparity_range_fraction: Some(0.25),
             epipolar_band_fraction: Some(0.01),
             learn_depth_range: false,
@@ -124,6 +131,7 @@ impl StereoConfig {
                 ("weight_brightness", self.weight_brightness),
                 ("pair_memory", self.pair_memory),
                 ("weight_row", self.weight_row),
+                ("weight_epipolar", self.weight_epipolar),
             ],
         )?;
         let bad = |key, reason| Err(ConfigError::invalid("stereo", key, reason));
@@ -144,6 +152,13 @@ impl StereoConfig {
         Ok(())
     }
 }
+
+/// `weight_epipolar`'s default: a candidate a whole band off its row costs 1, more than the
+/// diameter, speed and brightness terms add up to for any but a grossly mismatched pair
+/// (each is its weight times a squared relative difference). The rows of a true pair agree to
+/// the centroid noise in every image size, so the row decides between candidates, and diameter,
+/// speed and brightness settle the candidates on one row.
+const WEIGHT_EPIPOLAR: f64 = 1.0;
 
 /// The hard filter's bounds in the rectified pair, settled once per rig and config.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -321,7 +336,8 @@ pub fn match_stereo(
                 + config.weight_brightness
                     * ((l.feature.brightness - r.feature.brightness) / b_ave).powi(2)
                 + config.weight_row
-                    * ((l.feature.rect.y - r.feature.rect.y) / scale.half_height_px).powi(2);
+                    * ((l.feature.rect.y - r.feature.rect.y) / scale.half_height_px).powi(2)
+                + config.weight_epipolar * ((l.feature.rect.y - r.feature.rect.y) / band).powi(2);
             let key = (l.track_id, r.track_id);
             let effective = match history.get(&key) {
                 Some(past) if memory > 0.0 => memory * past + (1.0 - memory) * cost,
