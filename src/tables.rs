@@ -66,11 +66,40 @@ pub(crate) struct Row {
 
 /// Reads a numeric CSV whose header must equal one of `headers`; returns which one and the rows.
 pub(crate) fn read_numeric(path: &Path, headers: &[&str]) -> Result<(usize, Vec<Row>), TableError> {
+    parse_numeric(path, open(path)?, headers)
+}
+
+fn open(path: &Path) -> Result<BufReader<std::fs::File>, TableError> {
     let file = std::fs::File::open(path).map_err(|error| TableError::Io {
         path: path.to_path_buf(),
         error,
     })?;
-    parse_numeric(path, BufReader::new(file), headers)
+    Ok(BufReader::new(file))
+}
+
+/// The header line of `lines`, without a byte-order mark or carriage return; `expected` names
+/// the header wanted when there is none.
+fn read_header(
+    path: &Path,
+    lines: &mut impl Iterator<Item = std::io::Result<String>>,
+    expected: impl FnOnce() -> String,
+) -> Result<String, TableError> {
+    match lines.next() {
+        Some(line) => {
+            let line = line.map_err(|error| TableError::Io {
+                path: path.to_path_buf(),
+                error,
+            })?;
+            Ok(line
+                .trim_end_matches('\r')
+                .trim_start_matches('\u{feff}')
+                .to_string())
+        }
+        None => Err(TableError::Empty {
+            path: path.to_path_buf(),
+            expected: expected(),
+        }),
+    }
 }
 
 /// [`read_numeric`] of text from anywhere; `path` names it in errors.
@@ -79,10 +108,6 @@ pub(crate) fn parse_numeric(
     text: impl BufRead,
     headers: &[&str],
 ) -> Result<(usize, Vec<Row>), TableError> {
-    let io = |error| TableError::Io {
-        path: path.to_path_buf(),
-        error,
-    };
     let mut lines = text.lines();
     let expected = || {
         headers
@@ -91,16 +116,8 @@ pub(crate) fn parse_numeric(
             .collect::<Vec<_>>()
             .join(" or ")
     };
-    let header = match lines.next() {
-        Some(line) => line.map_err(io)?,
-        None => {
-            return Err(TableError::Empty {
-                path: path.to_path_buf(),
-                expected: expected(),
-            })
-        }
-    };
-    let header = header.trim_end_matches('\r').trim_start_matches('\u{feff}');
+    let header = read_header(path, &mut lines, expected)?;
+    let header = header.as_str();
     let Some(variant) = headers.iter().position(|h| *h == header) else {
         return Err(TableError::Header {
             path: path.to_path_buf(),
@@ -193,25 +210,9 @@ const TRUTH_VISIBILITY: [&str; 2] = ["in_left", "in_right"];
 /// Reads `truth.csv`: `TRUTH_HEADER`, then any further columns (kept for other tools, not read),
 /// of which `in_left` and `in_right`, when both are there, say which images show the particle.
 pub fn read_truth(path: &Path) -> Result<Vec<TruthRow>, TableError> {
-    let file = std::fs::File::open(path).map_err(|error| TableError::Io {
-        path: path.to_path_buf(),
-        error,
-    })?;
-    let mut lines = BufReader::new(file).lines();
+    let mut lines = open(path)?.lines();
     let expected = format!("'{TRUTH_HEADER}' (further columns may follow it)");
-    let header = match lines.next() {
-        Some(line) => line.map_err(|error| TableError::Io {
-            path: path.to_path_buf(),
-            error,
-        })?,
-        None => {
-            return Err(TableError::Empty {
-                path: path.to_path_buf(),
-                expected,
-            })
-        }
-    };
-    let header = header.trim_end_matches('\r').trim_start_matches('\u{feff}');
+    let header = read_header(path, &mut lines, || expected.clone())?;
     let names: Vec<&str> = header.split(',').map(str::trim).collect();
     let known = TRUTH_HEADER.split(',').count();
     if names.len() < known || names[..known].join(",") != TRUTH_HEADER {

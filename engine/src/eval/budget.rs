@@ -144,7 +144,7 @@ pub struct LossBudget {
 }
 
 /// A truth particle's images in one frame, and what became of them.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 struct Followed {
     /// Its images, raw pixels, where both cameras show it.
     px: Option<[PixelPoint; 2]>,
@@ -164,7 +164,7 @@ pub fn loss_budget(
 ) -> LossBudget {
     let diameter = median_diameter(observations);
     let radius = (0.5 * diameter).max(1.5);
-    let by_frame = truth_by_frame(truth);
+    let by_frame = super::by_frame(truth.iter());
     let mut followed: BTreeMap<(u64, u64), Followed> = BTreeMap::new();
     for o in observations {
         let Some(rows) = by_frame.get(&o.frame) else {
@@ -187,15 +187,15 @@ pub fn loss_budget(
     };
     let mut tally: BTreeMap<Fate, (usize, usize, usize)> = BTreeMap::new();
     let mut n = 0;
-    for t in truth.iter().filter(|t| observed.contains_key(&t.frame)) {
-        let Some(f) = followed.get(&(t.frame, t.pid)) else {
+    for t in truth {
+        let (Some(f), Some(obs)) = (followed.get(&(t.frame, t.pid)), observed.get(&t.frame)) else {
             continue;
         };
         if f.px.is_none() || !measurable.contains(t) {
             continue;
         }
         n += 1;
-        let entry = tally.entry(fates.of(t)).or_default();
+        let entry = tally.entry(fates.of(t, f, obs)).or_default();
         entry.0 += 1;
         entry.1 += usize::from(f.touching);
         entry.2 += usize::from(streaked(t, &followed, diameter));
@@ -230,14 +230,6 @@ fn median_diameter(observations: &[Observation]) -> f64 {
         return 3.0;
     }
     median(&mut d)
-}
-
-fn truth_by_frame(truth: &[TruthRow]) -> BTreeMap<u64, Vec<TruthRow>> {
-    let mut by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
-    for t in truth {
-        by_frame.entry(t.frame).or_default().push(*t);
-    }
-    by_frame
 }
 
 /// Projects one frame's truth into both images, marks touching images and gives each visible
@@ -343,15 +335,8 @@ struct Fates<'a> {
 }
 
 impl Fates<'_> {
-    fn of(&self, t: &TruthRow) -> Fate {
-        let Some(obs) = self.observed.get(&t.frame) else {
-            return Fate::UndetectedLeft;
-        };
-        let f = self
-            .followed
-            .get(&(t.frame, t.pid))
-            .copied()
-            .unwrap_or_default();
+    /// The fate of measurable `t`, followed as `f` in a frame the pipeline saw as `obs`.
+    fn of(&self, t: &TruthRow, f: &Followed, obs: &Observation) -> Fate {
         let [Some(dl), Some(dr)] = f.detection else {
             return if f.detection[0].is_none() {
                 Fate::UndetectedLeft

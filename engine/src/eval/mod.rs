@@ -275,10 +275,7 @@ pub fn evaluate(
         .map(|t| t.frame)
         .max()
         .ok_or(EvalError::NoTracks)?;
-    let mut truth_by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
-    for t in truth.iter().filter(|t| (first..=last).contains(&t.frame)) {
-        truth_by_frame.entry(t.frame).or_default().push(*t);
-    }
+    let truth_by_frame = by_frame(truth.iter().filter(|t| (first..=last).contains(&t.frame)));
     let truth_rows: usize = truth_by_frame.values().map(Vec::len).sum();
     if truth_rows == 0 {
         return Err(EvalError::NoTruth { first, last });
@@ -330,6 +327,15 @@ pub fn evaluate(
         by_depth: by_depth(&matched.associations, options.depth_bins),
         uncertainty: coverage(&matched.associations),
     })
+}
+
+/// Truth rows grouped by frame.
+fn by_frame<'a>(truth: impl Iterator<Item = &'a TruthRow>) -> BTreeMap<u64, Vec<TruthRow>> {
+    let mut by_frame: BTreeMap<u64, Vec<TruthRow>> = BTreeMap::new();
+    for t in truth {
+        by_frame.entry(t.frame).or_default().push(*t);
+    }
+    by_frame
 }
 
 fn fraction(a: usize, b: usize) -> f64 {

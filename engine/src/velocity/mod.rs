@@ -16,7 +16,7 @@ pub mod fit;
 pub mod outliers;
 pub mod uncertainty;
 
-use fit::{fit_adaptive, fit_line, FitChoice, QuadraticWindow};
+use fit::{fit_adaptive, fit_line, FitChoice, MotionFit, QuadraticWindow};
 use outliers::{neighbour_outliers, NeighbourTest};
 use uncertainty::{ScenePool, ScenePrior, UncertaintyBudget};
 
@@ -388,17 +388,12 @@ impl Velocities {
         {
             return None;
         }
-        let (velocity_sigma, position_sigma) = fit.error.sigmas(self.scene_prior(newest).as_ref());
-        Some(VelocityVector {
-            frame_index: newest.frame_index,
-            t_s: newest.t_s,
-            track_id: track.id,
-            position_in_world: fit.position,
-            velocity_in_world: fit.velocity,
-            rms_residual_m: fit.rms_residual,
-            velocity_sigma,
-            position_sigma,
-        })
+        Some(vector_at(
+            track,
+            newest,
+            &fit,
+            self.scene_prior(newest).as_ref(),
+        ))
     }
 
     /// A sample's noise variance per world component for a unit disparity variance: the
@@ -475,18 +470,8 @@ impl Velocities {
             (windows.last()?.motion()?, None)
         };
         let prior = self.scene_prior(centre);
-        let (velocity_sigma, position_sigma) = fit.error.sigmas(prior.as_ref());
         Some(Ok(Centred {
-            vector: VelocityVector {
-                frame_index: centre.frame_index,
-                t_s: centre.t_s,
-                track_id: track.id,
-                position_in_world: fit.position,
-                velocity_in_world: fit.velocity,
-                rms_residual_m: fit.rms_residual,
-                velocity_sigma,
-                position_sigma,
-            },
+            vector: vector_at(track, centre, &fit, prior.as_ref()),
             choice,
             noise_ratio: self.noise_ratio(&fit.error, centre),
             cubic_term: (fit.error.cubic_term_gain > 0.0).then(|| {
@@ -611,6 +596,26 @@ impl Velocities {
         } else {
             m
         }
+    }
+}
+
+/// The vector a fit gives for `track` at `sample`, its sigmas from the fit and the scene prior.
+fn vector_at(
+    track: &Track3d,
+    sample: &Sample,
+    fit: &MotionFit,
+    prior: Option<&ScenePrior>,
+) -> VelocityVector {
+    let (velocity_sigma, position_sigma) = fit.error.sigmas(prior);
+    VelocityVector {
+        frame_index: sample.frame_index,
+        t_s: sample.t_s,
+        track_id: track.id,
+        position_in_world: fit.position,
+        velocity_in_world: fit.velocity,
+        rms_residual_m: fit.rms_residual,
+        velocity_sigma,
+        position_sigma,
     }
 }
 
