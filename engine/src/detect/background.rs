@@ -5,7 +5,7 @@
 //! [`DetectConfig::background_rise_per_frame`]: super::DetectConfig::background_rise_per_frame
 
 /// Frames a pixel must stay brighter than its background model before the model rises there.
-const DELAY_FRAMES: u8 = 10;
+const DELAY_FRAMES: u16 = 10;
 
 /// The model, in the blurred image's units (grey levels x 256); empty when the model is off.
 #[derive(Debug, Default)]
@@ -14,8 +14,9 @@ pub(super) struct Background {
     model: Vec<u16>,
     /// The model once the current image is in it.
     next: Vec<u16>,
-    /// Per pixel: frames in a row it has been brighter than its model.
-    bright_frames: Vec<u8>,
+    /// Per pixel: frames in a row it has been brighter than its model (as wide as the model, so
+    /// the row update vectorises in one lane width).
+    bright_frames: Vec<u16>,
 }
 
 impl Background {
@@ -51,20 +52,27 @@ impl Background {
         blurred: &mut [u16],
         rise: u16,
     ) {
-        for (((d, &b), next), bright) in blurred
-            .iter_mut()
-            .zip(&self.model[row.clone()])
-            .zip(&mut self.next[row.clone()])
-            .zip(&mut self.bright_frames[row])
-        {
-            let above = *d > b.saturating_add(rise);
-            *bright = if above { bright.saturating_add(1) } else { 0 };
-            *next = if !above || *bright > DELAY_FRAMES {
-                b.saturating_add(rise).min(*d)
-            } else {
-                b
-            };
-            *d = d.saturating_sub(b);
+        let model = &self.model[row.clone()];
+        let next = &mut self.next[row.clone()];
+        let bright = &mut self.bright_frames[row];
+        let n = blurred.len().min(model.len()).min(next.len()).min(bright.len());
+        let (blurred, model, next, bright) = (
+            &mut blurred[..n],
+            &model[..n],
+            &mut next[..n],
+            &mut bright[..n],
+        );
+        // Branch-free on equal-length slices, so the compiler vectorises the row.
+        for i in 0..n {
+            let (d, b) = (blurred[i], model[i]);
+            let raised = b.saturating_add(rise);
+            let above = u16::from(d > raised);
+            // Counts up while above (0 otherwise); saturating, as only `> DELAY_FRAMES` matters.
+            let frames = bright[i].saturating_add(1) * above;
+            bright[i] = frames;
+            let keep = above & u16::from(frames <= DELAY_FRAMES);
+            next[i] = if keep == 1 { b } else { raised.min(d) };
+            blurred[i] = d.saturating_sub(b);
         }
     }
 
