@@ -24,6 +24,38 @@ use common::*;
 
 const LOST_RIGHT_FRAME: usize = 7;
 const FIRST_TICKS: u64 = 133_000_000_000;
+/// The sensor clock's stamp of the first exposure, nanoseconds (its own epoch, not the host's).
+const FIRST_SENSOR_NS: u64 = 4_210_000_000_000;
+
+/// How the fake stamps its frames, and which clock the bridge is told to time them by.
+#[derive(Clone, Copy)]
+struct Timing {
+    /// Host ticks are off the exposure by up to this much either way, independently per camera
+    /// and frame, and the right camera's by as much again throughout, 100 ns ticks.
+    jitter_ticks: i64,
+    /// `--frame-clock`.
+    clock: &'static str,
+}
+
+/// A HoloLens as hl2ss's own measurements describe it: host ticks +-1 ms off, per camera.
+const DEVICE: Timing = Timing {
+    jitter_ticks: 10_000,
+    clock: "sensor",
+};
+
+/// Host-tick jitter of frame `i`, in [-j, j] ticks: a fixed pseudo-random sequence per camera.
+fn jitter(i: usize, right: bool, j: i64) -> i64 {
+    if j == 0 {
+        return 0;
+    }
+    let mut z = (i as u64 * 2 + u64::from(right)).wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 31;
+    let uniform = (z >> 11) as f64 / (1u64 << 53) as f64;
+    let systematic = if right { j } else { 0 };
+    systematic + ((2.0 * uniform - 1.0) * j as f64).round() as i64
+}
 /// hl2ss's host ticks for a VLC frame run this long after mid-exposure (its
 /// `etc/rm_timestamps.txt`), in 100 ns ticks.
 const HOST_TICKS_AFTER_MID_EXPOSURE: i64 = 125_000;
@@ -48,6 +80,7 @@ fn fake_camera(
     right: bool,
     camera_from_node: Isometry3<f64>,
     node_from_left: Isometry3<f64>,
+    jitter_ticks: i64,
 ) -> u16 {
     let listener = TcpListener::bind("127.0.0.1:0").expect("port");
     let port = listener.local_addr().expect("addr").port();
@@ -112,13 +145,15 @@ fn fake_camera(
                 let timestamp = mid_exposure
                     + HOST_TICKS_AFTER_MID_EXPOSURE
                     + (exposure_factor * exposure_ns as f64 / 100.0) as i64
-                    + constant;
+                    + constant
+                    + jitter(i, right, jitter_ticks);
                 let stamped_t_s = entry.t_s + (timestamp - mid_exposure) as f64 / 1e7;
                 let world_from_node = pose_at(&rec, stamped_t_s) * node_from_left.inverse();
                 let frame = VlcFrame {
                     timestamp: timestamp as u64,
                     pixels: if right { r } else { l },
-                    sensor_ticks: i as u64,
+                    // One sensor clock for both cameras, stepping exactly with the exposures.
+                    sensor_ticks: FIRST_SENSOR_NS + (entry.t_s * 1e9).round() as u64,
                     exposure: exposure_ns,
                     gain: 1,
                     pose: Some(row_vector_from_isometry(&world_from_node)),
@@ -193,19 +228,118 @@ fn max_abs(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fake_hololens_streams_through_the_bridge_like_a_headset() {
-    bridge_session(&[]).await;
+    bridge_session(&[], DEVICE).await;
 }
 
 /// The same HoloLens streaming H.264 (as over Wi-Fi), decoded by the bridge; the holograms show
 /// the session's mean-flow field (`--holograms field`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fake_hololens_streaming_h264_is_decoded_by_the_bridge() {
-    bridge_session(&["--codec", "h264", "--bitrate-mbps", "2.5"]).await;
+    bridge_session(&["--codec", "h264", "--bitrate-mbps", "2.5"], DEVICE).await;
 }
 
-/// `mrptv hl2ss` with `codec_args` against the fake HoloLens, a recording server, and a fake
-/// message queue; everything checked.
-async fn bridge_session(codec_args: &[&str]) {
+/// On the sensor clock with jittered host stamps, the recorded pose is interpolated to the
+/// exposure's fitted host time between poses located at the jittered stamps: off the
+/// exposure's where the fake head's motion bends between them, and on the first frames, whose
+/// fit has few stamps; never as far as 1.5 ms of the head's motion.
+const POSE_TOLERANCE_JITTERED: f64 = 1.5e-4;
+
+/// Host stamps jittered by +-1 ms per camera (the right one 1 ms late throughout): on the sensor
+/// clock the recorded times are the exposures' and the vectors those of exact stamps; on the
+/// host clock (`--frame-clock host`) what the jitter costs, at +-1 and +-2 ms, is printed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn host_tick_jitter_moves_neither_times_nor_vectors_on_the_sensor_clock() {
+    let exact = bridge_session(
+        &[],
+        Timing {
+            jitter_ticks: 0,
+            clock: "sensor",
+        },
+    )
+    .await;
+    for (jitter_ticks, clock) in [(10_000, "sensor"), (10_000, "host"), (20_000, "host")] {
+        let run = bridge_session(
+            &[],
+            Timing {
+                jitter_ticks,
+                clock,
+            },
+        )
+        .await;
+        let rms_ms = (run
+            .times
+            .iter()
+            .map(|(t, _, e)| (t - e).powi(2))
+            .sum::<f64>()
+            / run.times.len() as f64)
+            .sqrt()
+            * 1e3;
+        let (relative, compared) = velocity_difference(&exact, &run);
+        println!(
+            "+-{} ms host jitter, {clock} clock: t_s {rms_ms:.4} ms rms off the exposures; \
+             velocities {:.1} % (rms, relative) off those of exact stamps over {compared} vectors",
+            jitter_ticks as f64 / 1e4,
+            100.0 * relative
+        );
+        assert!(compared > 100, "{compared} vectors compared");
+        if clock == "sensor" {
+            assert!(rms_ms < 0.02, "t_s {rms_ms} ms rms off");
+            assert!(relative < 0.10, "velocities {relative} off");
+        }
+    }
+}
+
+/// The rms difference of `run`'s velocities from `exact`'s, relative to `exact`'s rms speed,
+/// over vectors of the same original frame at the same place (within 3 mm); frames near one
+/// either session skipped (a busy machine) are left out. With the number compared.
+fn velocity_difference(exact: &Session, run: &Session) -> (f64, usize) {
+    let originals = |s: &Session| -> std::collections::BTreeMap<u64, usize> {
+        let by_t: Vec<(f64, usize)> = s.times.iter().map(|(t, i, _)| (*t, *i)).collect();
+        s.rows
+            .iter()
+            .filter_map(|r| {
+                by_t.iter()
+                    .find(|(t, _)| (t - r.t_s).abs() < 1e-9)
+                    .map(|(_, i)| (r.frame, *i))
+            })
+            .collect()
+    };
+    let (oe, or) = (originals(exact), originals(run));
+    let received = |s: &Session| s.times.iter().map(|t| t.1).collect::<Vec<usize>>();
+    let (re, rr) = (received(exact), received(run));
+    let complete = |i: usize| {
+        (i.saturating_sub(6)..=i + 6)
+            .filter(|&k| k != LOST_RIGHT_FRAME && k < 40)
+            .all(|k| re.contains(&k) && rr.contains(&k))
+    };
+    let (mut diff, mut speed, mut n) = (0.0, 0.0, 0);
+    for a in &exact.rows {
+        let Some(&i) = oe.get(&a.frame).filter(|&&i| complete(i)) else {
+            continue;
+        };
+        let matched = run
+            .rows
+            .iter()
+            .find(|b| or.get(&b.frame) == Some(&i) && (b.position - a.position).norm() < 3e-3);
+        if let Some(b) = matched {
+            diff += (b.velocity - a.velocity).norm_squared();
+            speed += a.velocity.norm_squared();
+            n += 1;
+        }
+    }
+    ((diff / speed.max(1e-300)).sqrt(), n)
+}
+
+/// What a bridge session gave: the live vectors, and per recorded frame its `t_s` with the
+/// exposure time of the original frame it is.
+struct Session {
+    rows: Vec<mrptv::tables::TrackRow>,
+    times: Vec<(f64, usize, f64)>,
+}
+
+/// `mrptv hl2ss` with `codec_args` against the fake HoloLens stamping as `timing` says, a
+/// recording server, and a fake message queue; everything checked.
+async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let h264 = !codec_args.is_empty();
     let holograms_of_the_field = h264;
     let tmp = tempfile::tempdir().expect("tmp");
@@ -226,8 +360,9 @@ async fn bridge_session(codec_args: &[&str]) {
     );
     let right_from_node = rec.rig.right_from_left * left_from_node;
     let node_from_left = left_from_node.inverse();
-    let left_port = fake_camera(rec.clone(), false, left_from_node, node_from_left);
-    let right_port = fake_camera(rec.clone(), true, right_from_node, node_from_left);
+    let j = timing.jitter_ticks;
+    let left_port = fake_camera(rec.clone(), false, left_from_node, node_from_left, j);
+    let right_port = fake_camera(rec.clone(), true, right_from_node, node_from_left, j);
 
     let record = tmp.path().join("recorded");
     let server = TestServer::start(ServerOptions {
@@ -264,6 +399,8 @@ async fn bridge_session(codec_args: &[&str]) {
         arrows.to_string(),
         "--hologram-rate".into(),
         "10".into(),
+        "--frame-clock".into(),
+        timing.clock.into(),
     ]
     .into_iter()
     .chain(codec_args.iter().map(|a| a.to_string()))
@@ -328,22 +465,50 @@ async fn bridge_session(codec_args: &[&str]) {
     // The session's recording: the original images and poses, and the fitted calibration.
     let recorded = Recording::open(&the_only_subdir(&record)).expect("recording");
     assert_eq!(recorded.frames.len() as u64, processed);
+    let sensor_clock = timing.clock == "sensor";
+    let mut times = Vec::new();
+    let mut worst_pose = 0.0f64;
+    let mut pose_errors = Vec::new();
     for got in &recorded.frames {
-        let original = rec
+        let exposure = |e: &mrptv::recording::FrameEntry| e.t_s - rec.frames[0].t_s;
+        let (original_index, original) = rec
             .frames
             .iter()
             .enumerate()
             .filter(|(i, _)| *i != LOST_RIGHT_FRAME)
-            .map(|(_, e)| e)
-            .find(|e| (got.t_s - (e.t_s - rec.frames[0].t_s)).abs() < 1e-6)
-            .unwrap_or_else(|| panic!("frame {} is none of the originals", got.index));
-        // The fake's world is hl2ss's (y up); the server works in OpenCV's axes (y down).
+            .min_by(|a, b| {
+                let off = |e| (got.t_s - exposure(e)).abs();
+                off(a.1).total_cmp(&off(b.1))
+            })
+            .expect("originals");
+        let dt = got.t_s - exposure(original);
+        times.push((got.t_s, original_index, exposure(original)));
+        // On the sensor clock, the exposure times whatever the host stamps did.
+        let tolerance_s = if sensor_clock { 1e-6 } else { 5e-3 };
+        assert!(
+            dt.abs() < tolerance_s,
+            "frame {} is none of the originals ({dt} s off)",
+            got.index
+        );
+        // The fake's world is hl2ss's (y up); the server works in OpenCV's axes (y down). On
+        // the sensor clock the pose is the exposure's, interpolated between jittered stamps.
         let d = max_abs(
             &got.world_from_rig.expect("posed"),
             &(mrptv::hl2ss::bridge::opencv_from_hl2ss_world()
                 * original.world_from_rig.expect("posed")),
         );
-        assert!(d < 1e-5, "frame {}: pose off by {d}", got.index);
+        worst_pose = worst_pose.max(d);
+        pose_errors.push(d);
+        let tolerance = if j == 0 {
+            1e-5
+        } else {
+            POSE_TOLERANCE_JITTERED
+        };
+        assert!(
+            !sensor_clock || d < tolerance,
+            "frame {}: pose off by {d}",
+            got.index
+        );
         let (got_images, original_images) = (
             recorded.load(got).expect("recorded"),
             rec.load(original).expect("original"),
@@ -394,6 +559,12 @@ async fn bridge_session(codec_args: &[&str]) {
         String::from_utf8_lossy(&processed.stderr)
     );
     assert_same_rows(&live, &offline);
+    let rows = mrptv::tables::read_tracks(&live).expect("live rows");
+    pose_errors.sort_by(f64::total_cmp);
+    let median_pose = pose_errors[pose_errors.len() / 2];
+    println!(
+        "recorded poses at most {worst_pose:.2e} off the exposures', median {median_pose:.2e}"
+    );
 
     // The holograms: one pool, created once, then display lists at most 10 a second.
     let commands = commands.lock().expect("lock").clone();
@@ -485,6 +656,7 @@ async fn bridge_session(codec_args: &[&str]) {
         .filter(|(id, _)| *id == hologram::REMOVE)
         .count();
     assert_eq!(removed, arrows, "the pool is removed at the end");
+    Session { rows, times }
 }
 
 /// Two `tracks.csv` files with the same rows, values equal to float32 rounding; the live one in

@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 
 use mrptv::client::{self, Rate, ReplayOptions, ReplayReport};
 use mrptv::hl2ss::bridge::{calibrate, BridgeCounters, Hl2ssEndpoints, Hl2ssSource};
+use mrptv::hl2ss::clock::FrameClock;
 use mrptv::hl2ss::holograms::{self, HologramContent, Painter};
 use mrptv::hl2ss::VlcCodec;
 use mrptv::protocol::Convention;
@@ -38,6 +39,11 @@ pub struct Args {
     /// Left and right frames further apart than this are not a pair, milliseconds.
     #[arg(long, default_value_t = 5.0)]
     pair_tolerance_ms: f64,
+    /// Which clock times the frames: sensor (the cameras' own `sensor_ticks`, exact exposure
+    /// times; poses at each exposure's fitted host time) or host (the host ticks as sent, which
+    /// jitter by a millisecond or more per camera).
+    #[arg(long, value_enum, default_value_t = FrameClock::Sensor)]
+    frame_clock: FrameClock,
     /// Fit the lens model to every N-th pixel of the calibration tables, each way.
     #[arg(long, default_value_t = 8)]
     fit_step: usize,
@@ -121,6 +127,7 @@ pub fn run(args: Args) -> Result<()> {
         &endpoints,
         rig,
         std::time::Duration::from_secs_f64(pair_tolerance_ms / 1e3),
+        args.frame_clock,
         codec,
         (bitrate_mbps * 1e6) as u32,
     ) {

@@ -1,6 +1,6 @@
 //! `mrptv hl2ss`: a HoloLens 2 running the hl2ss app as a headset of `mrptv serve`. Fetches both
 //! front cameras' calibrations, fits the `rig.json` lens model to them, then reads both raw
-//! streams with poses, pairs frames by timestamp and hands them to the reference client
+//! streams with poses, pairs frames by the sensor clock ([`crate::hl2ss::clock`]) and hands them to the reference client
 //! ([`crate::client::replay`]), which streams them to the server like any WebSocket headset.
 //! Formats: [`crate::hl2ss`].
 
@@ -14,6 +14,7 @@ use nalgebra::Isometry3;
 use serde::Serialize;
 
 use crate::client::{ClientError, FrameSource, SourceFrame};
+use crate::hl2ss::clock::{FrameClock, PoseHistory, SensorToHost};
 use crate::hl2ss::{
     decode_header, fit_lens, isometry_from_row_vector, stereo_rig, LensFit, Pairer, StreamConfig,
     VlcCalibration, VlcCodec, VlcFrame, CALIBRATION_FLOATS, HEADER_BYTES, POSE_BYTES,
@@ -263,15 +264,15 @@ impl Hl2ssSource {
             Err(e) => return Err(ClientError::Protocol(e.to_string())),
         };
         let other = 1 - side as usize;
+        let ticks = self.pairer.ticks(&frame);
         // One camera alone makes no stereo pair.
         if self.ended[other]
-            && frame.timestamp
-                > self.last_timestamp[other].saturating_add(self.pairer.tolerance_ticks())
+            && ticks > self.last_timestamp[other].saturating_add(self.pairer.tolerance_ticks())
         {
             self.end();
             return Ok(());
         }
-        self.last_timestamp[side as usize] = frame.timestamp;
+        self.last_timestamp[side as usize] = ticks;
         let pair = match side {
             Side::Left => {
                 self.count(|c| c.left_frames += 1);
@@ -297,11 +298,14 @@ pub struct Hl2ssSource {
     rig: BridgeRig,
     frames: std_mpsc::Receiver<Result<(Side, VlcFrame), BridgeError>>,
     pairer: Pairer,
+    clock: FrameClock,
+    sensor_to_host: SensorToHost,
+    poses: PoseHistory,
     first_timestamp: Option<u64>,
     last_t_s: f64,
     next_index: u64,
     counters: Arc<Mutex<BridgeCounters>>,
-    /// Per side (left, right): its stream has ended; its newest timestamp.
+    /// Per side (left, right): its stream has ended; its newest time on the pairing clock.
     ended: [bool; 2],
     last_timestamp: [u64; 2],
     finished: bool,
@@ -314,11 +318,13 @@ pub struct Hl2ssSource {
 const MAX_BACKLOG_PAIRS: usize = 4;
 
 impl Hl2ssSource {
-    /// Opens both streams with poses, raw or H.264 at `bitrate` bits a second a camera.
+    /// Opens both streams with poses, raw or H.264 at `bitrate` bits a second a camera; frames
+    /// are paired and timed on `clock`.
     pub fn open(
         endpoints: &Hl2ssEndpoints,
         rig: BridgeRig,
         pair_tolerance: Duration,
+        clock: FrameClock,
         codec: VlcCodec,
         bitrate: u32,
     ) -> Result<Self, BridgeError> {
@@ -358,7 +364,13 @@ impl Hl2ssSource {
         Ok(Self {
             rig,
             frames,
-            pairer: Pairer::new((pair_tolerance.as_secs_f64() * TICKS_PER_SECOND) as u64),
+            pairer: Pairer::new(
+                (pair_tolerance.as_secs_f64() * TICKS_PER_SECOND) as u64,
+                clock,
+            ),
+            clock,
+            sensor_to_host: SensorToHost::default(),
+            poses: PoseHistory::default(),
             first_timestamp: None,
             last_t_s: f64::NEG_INFINITY,
             next_index: 0,
@@ -379,17 +391,37 @@ impl Hl2ssSource {
         f(&mut self.counters.lock().unwrap_or_else(|p| p.into_inner()));
     }
 
+    /// The rig node's pose when the left camera's exposure was: the left frame's own pose on the
+    /// host clock; on the sensor clock, the pose at the exposure's fitted host time, between the
+    /// poses the frames brought. `None` when the left frame has no pose (tracking lost).
+    fn node_pose(&mut self, left: &VlcFrame, right: &VlcFrame) -> Option<Isometry3<f64>> {
+        let pose = |f: &VlcFrame| {
+            f.pose
+                .and_then(|m| isometry_from_row_vector("pose", &m).ok())
+        };
+        let own = pose(left)?;
+        if self.clock == FrameClock::Host || left.sensor_ticks == 0 {
+            return Some(own);
+        }
+        self.poses.push(left.timestamp, own);
+        if let Some(p) = pose(right) {
+            self.poses.push(right.timestamp, p);
+        }
+        let exposure = self.pairer.ticks(left);
+        self.sensor_to_host.observe(exposure, left.timestamp);
+        let at = self.sensor_to_host.host_at(exposure)?;
+        self.poses.at(at).or(Some(own))
+    }
+
     /// A pair as a stereo frame; `None` (counted) when it has no usable pose or time.
     fn convert(&mut self, left: VlcFrame, right: VlcFrame) -> Option<SourceFrame> {
-        let world_from_node = left
-            .pose
-            .and_then(|m| isometry_from_row_vector("pose", &m).ok());
-        let Some(world_from_node) = world_from_node else {
+        let Some(world_from_node) = self.node_pose(&left, &right) else {
             self.count(|c| c.unposed += 1);
             return None;
         };
-        let first = *self.first_timestamp.get_or_insert(left.timestamp);
-        let t_s = left.timestamp.saturating_sub(first) as f64 / TICKS_PER_SECOND;
+        let ticks = self.pairer.ticks(&left);
+        let first = *self.first_timestamp.get_or_insert(ticks);
+        let t_s = ticks.saturating_sub(first) as f64 / TICKS_PER_SECOND;
         if t_s <= self.last_t_s {
             self.count(|c| c.stale += 1);
             return None;

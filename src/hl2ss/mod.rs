@@ -22,6 +22,7 @@
 //! message queue (`mrptv hl2ss --holograms`).
 
 pub mod bridge;
+pub mod clock;
 pub mod holograms;
 
 use nalgebra::{Isometry3, Matrix4, SMatrix, SVector};
@@ -730,11 +731,13 @@ pub(crate) fn stereo_rig(
     Ok((rig, left_from_node))
 }
 
-/// Pairs left and right frames whose timestamps agree within a tolerance. Frames that find no
+/// Pairs left and right frames whose times (on the chosen [`clock::FrameClock`]) agree within a
+/// tolerance. Frames that find no
 /// partner (the other camera's frame was lost, or came too late) are counted and dropped.
 #[derive(Debug)]
 pub(crate) struct Pairer {
     tolerance_ticks: u64,
+    clock: clock::FrameClock,
     left: std::collections::VecDeque<VlcFrame>,
     right: std::collections::VecDeque<VlcFrame>,
     pub(crate) unpaired_left: u64,
@@ -746,9 +749,10 @@ pub(crate) struct Pairer {
 const PAIRING_PATIENCE_TICKS: u64 = 10_000_000;
 
 impl Pairer {
-    pub(crate) fn new(tolerance_ticks: u64) -> Self {
+    pub(crate) fn new(tolerance_ticks: u64, clock: clock::FrameClock) -> Self {
         Self {
             tolerance_ticks,
+            clock,
             left: Default::default(),
             right: Default::default(),
             unpaired_left: 0,
@@ -758,6 +762,11 @@ impl Pairer {
 
     pub(crate) fn tolerance_ticks(&self) -> u64 {
         self.tolerance_ticks
+    }
+
+    /// A frame's time on the pairing clock, ticks.
+    pub(crate) fn ticks(&self, frame: &VlcFrame) -> u64 {
+        clock::frame_ticks(self.clock, frame.timestamp, frame.sensor_ticks)
     }
 
     pub(crate) fn push_left(&mut self, frame: VlcFrame) -> Option<(VlcFrame, VlcFrame)> {
@@ -773,12 +782,13 @@ impl Pairer {
     fn pair(&mut self) -> Option<(VlcFrame, VlcFrame)> {
         loop {
             let (l, r) = (self.left.front()?, self.right.front()?);
-            if l.timestamp.abs_diff(r.timestamp) <= self.tolerance_ticks {
+            let (l, r) = (self.ticks(l), self.ticks(r));
+            if l.abs_diff(r) <= self.tolerance_ticks {
                 let (l, r) = (self.left.pop_front()?, self.right.pop_front()?);
                 return Some((l, r));
             }
             // The older of the two fronts can no longer be paired: frames arrive in time order.
-            if l.timestamp < r.timestamp {
+            if l < r {
                 self.left.pop_front();
                 self.unpaired_left += 1;
             } else {
@@ -802,18 +812,22 @@ impl Pairer {
         let newest = [self.left.back(), self.right.back()]
             .into_iter()
             .flatten()
-            .map(|f| f.timestamp)
+            .map(|f| self.ticks(f))
             .max()
             .unwrap_or(0);
         let oldest_kept = newest.saturating_sub(PAIRING_PATIENCE_TICKS);
-        while self.left.front().is_some_and(|f| f.timestamp < oldest_kept) {
+        while self
+            .left
+            .front()
+            .is_some_and(|f| self.ticks(f) < oldest_kept)
+        {
             self.left.pop_front();
             self.unpaired_left += 1;
         }
         while self
             .right
             .front()
-            .is_some_and(|f| f.timestamp < oldest_kept)
+            .is_some_and(|f| self.ticks(f) < oldest_kept)
         {
             self.right.pop_front();
             self.unpaired_right += 1;
@@ -839,8 +853,26 @@ mod tests {
     }
 
     #[test]
+    fn frames_pair_by_the_sensor_clock_whatever_their_host_stamps() {
+        let frame = |host: u64, sensor_ns: u64| VlcFrame {
+            sensor_ticks: sensor_ns,
+            ..at(host)
+        };
+        // Host stamps 4 ms apart (beyond a 2 ms tolerance), one exposure on the sensor clock.
+        let mut p = Pairer::new(20_000, clock::FrameClock::Sensor);
+        assert!(p.push_left(frame(1_000_000, 5_000_000_000)).is_none());
+        let (l, r) = p
+            .push_right(frame(1_040_000, 5_000_000_000))
+            .expect("a pair");
+        assert_eq!((l.timestamp, r.timestamp), (1_000_000, 1_040_000));
+        let mut p = Pairer::new(20_000, clock::FrameClock::Host);
+        assert!(p.push_left(frame(1_000_000, 5_000_000_000)).is_none());
+        assert!(p.push_right(frame(1_040_000, 5_000_000_000)).is_none());
+    }
+
+    #[test]
     fn frames_pair_by_timestamp_and_orphans_are_counted() {
-        let mut p = Pairer::new(50_000);
+        let mut p = Pairer::new(50_000, clock::FrameClock::Sensor);
         assert!(p.push_left(at(1_000_000)).is_none());
         let (l, r) = p.push_right(at(1_000_100)).expect("a pair");
         assert_eq!((l.timestamp, r.timestamp), (1_000_000, 1_000_100));

@@ -55,7 +55,11 @@ impl Background {
         let model = &self.model[row.clone()];
         let next = &mut self.next[row.clone()];
         let bright = &mut self.bright_frames[row];
-        let n = blurred.len().min(model.len()).min(next.len()).min(bright.len());
+        let n = blurred
+            .len()
+            .min(model.len())
+            .min(next.len())
+            .min(bright.len());
         let (blurred, model, next, bright) = (
             &mut blurred[..n],
             &model[..n],
