@@ -345,6 +345,51 @@ mod tests {
         assert!(worst <= Some(6), "background within noise: {worst:?}");
     }
 
+    /// The painted level is the exact bilinear value rounded half up: with `block_px` 16 every
+    /// weight is a multiple of 1/32, so the exact value times 1024 is an integer.
+    #[test]
+    fn the_background_is_the_exact_bilinear_value_rounded_half_up() {
+        // 0 and 16 one block apart, a 32nd of the way: 0.5, which rounds up.
+        assert_eq!(paint_background(&[0, 16], 32, 1, 16)[8], 1);
+        let (w, h, block) = (48usize, 40usize, 16usize);
+        let (bw, bh) = blocks(w, h, block);
+        let levels: Vec<u8> = (0..bw * bh).map(|k| (k * 37 % 251) as u8).collect();
+        // Per pixel, the block pair and the second's weight in 32nds.
+        let axis = |p: usize, n: usize| {
+            let f = (2 * p as i64 - 15).clamp(0, 32 * (n as i64 - 1));
+            let i = (f / 32) as usize;
+            (i, (i + 1).min(n - 1), f % 32)
+        };
+        let painted = paint_background(&levels, w, h, block);
+        for y in 0..h {
+            let (y0, y1, ty) = axis(y, bh);
+            for x in 0..w {
+                let (x0, x1, tx) = axis(x, bw);
+                let l = |bx: usize, by: usize| i64::from(levels[by * bw + bx]);
+                let along_y = |bx| l(bx, y0) * (32 - ty) + l(bx, y1) * ty;
+                let v1024 = along_y(x0) * (32 - tx) + along_y(x1) * tx;
+                let expected = (v1024 + 512).div_euclid(1024);
+                assert_eq!(i64::from(painted[y * w + x]), expected, "({x}, {y})");
+            }
+        }
+    }
+
+    /// A block of an even number of pixels is sent as its lower median.
+    #[test]
+    fn a_block_level_is_its_lower_median() {
+        // One 4x4 block over a 4x2 image: eight pixels, four of 10 and four of 20.
+        let pixels = [10, 20, 10, 20, 20, 10, 20, 10];
+        assert_eq!(block_medians(&pixels, 4, 2, 4), vec![10]);
+        assert_eq!(block_medians(&[10, 20, 20, 30], 2, 2, 2), vec![20]);
+    }
+
+    /// The 3x3 mean at the image's border repeats the edge pixels.
+    #[test]
+    fn the_3x3_mean_repeats_the_border() {
+        // The corner pixel counts four times in its own neighbourhood, twice in its neighbour's.
+        assert_eq!(sums_3x3(&[9, 0, 0, 0], 2, 2), vec![36, 18, 18, 9]);
+    }
+
     #[test]
     fn a_flat_image_is_its_background_alone() {
         let image = vec![40u8; 64 * 48];

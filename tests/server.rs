@@ -251,6 +251,50 @@ async fn python_client_written_from_the_spec_gets_the_offline_vectors() {
     );
 }
 
+/// A malformed `sparse` image (truncated, a non-zero reserved byte, a block side of 0, a run
+/// across rows) is `bad_image`, as the spec's error table says; the session lives on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_sparse_images_are_bad_image_and_the_session_lives_on() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (rec, _) = synth(&tmp.path().join("rec"), Scenario::Flume, 2);
+    let server = TestServer::start(ServerOptions::default()).await;
+    let mut ws = connect(&server.ingest()).await;
+    ws.send(hello(&rec, |v| v["image"]["encoding"] = "sparse".into()))
+        .await
+        .expect("sends");
+    assert!(matches!(
+        next_text(&mut ws).await,
+        ServerMessage::Welcome { .. }
+    ));
+    let (w, h) = (rec.rig.width, rec.rig.height);
+    let (left, right) = rec.load(&rec.frames[0]).expect("frame 0");
+    let encode = |p: &[u8]| Encoding::Sparse.encode_image(p, w, h).expect("encodes");
+    let (l, r) = (encode(&left), encode(&right));
+    type Edit = fn(&mut Vec<u8>);
+    let broken: [(&str, Edit); 4] = [
+        ("truncated", |b| b.truncate(b.len() - 1)),
+        ("reserved", |b| b[1] = 1),
+        ("block side 0", |b| b[0] = 0),
+        ("trailing byte", |b| b.push(0)),
+    ];
+    for (what, edit) in &broken {
+        let mut bad = l.clone();
+        edit(&mut bad);
+        let m = expect_error(
+            &mut ws,
+            frame(0, 0.0, Encoding::Sparse, &bad, &r),
+            ErrorCode::BadImage,
+        )
+        .await;
+        assert!(m.contains("left"), "{what}: {m}");
+    }
+    ws.send(frame(0, 0.0, Encoding::Sparse, &l, &r))
+        .await
+        .expect("sends");
+    assert_eq!(next_binary(&mut ws).await.frame_index, 0);
+    server.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_messages_get_clear_errors_and_other_sessions_are_unaffected() {
     let tmp = tempfile::tempdir().expect("tmp");

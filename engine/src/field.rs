@@ -483,5 +483,41 @@ mod tests {
         assert!(close(nice_length(0.0013), 0.001));
         assert!(close(nice_length(0.016), 0.02));
         assert!(close(nice_length(0.34), 0.5));
+        // A stray far away moves no percentile; a tie on the log scale goes to the smaller.
+        let mut strayed = positions.clone();
+        strayed[50] = Point3::new(40.0, 0.0, 1.0);
+        assert!(default_cell_m(&strayed).is_some_and(|c| close(c, 0.05)));
+        assert!(close(nice_length(0.01 * 2f64.sqrt() * (1.0 - 1e-15)), 0.01));
+    }
+
+    #[test]
+    fn a_streamed_field_learns_its_cell_once_and_a_reset_keeps_it() {
+        let vector = |i: usize| VelocityVector {
+            frame_index: i as u64,
+            t_s: i as f64 / 30.0,
+            track_id: i as u64,
+            position_in_world: Point3::new((i % 100) as f64 * 0.004, 0.0, 1.0),
+            velocity_in_world: Vector3::new(0.1, 0.0, 0.0),
+            rms_residual_m: 0.0,
+            velocity_sigma: Vector3::zeros(),
+            position_sigma: Vector3::zeros(),
+        };
+        let mut field = StreamField::new(None, None).expect("field");
+        let first: Vec<VelocityVector> = (0..StreamField::SIZING_VECTORS - 1).map(vector).collect();
+        field.add_vectors(&first);
+        assert!(field.grid().is_none(), "not sized before 500 vectors");
+        field.add_vectors(&[vector(499)]);
+        let cell = field.grid().map(FieldGrid::cell_m).expect("sized at 500");
+        assert!((cell - 0.05).abs() < 1e-12, "{cell}");
+        field.reset();
+        let wide: Vec<VelocityVector> = (0..600)
+            .map(|i| VelocityVector {
+                position_in_world: Point3::new(i as f64, 0.0, 1.0),
+                ..vector(i)
+            })
+            .collect();
+        field.add_vectors(&wide);
+        assert_eq!(field.grid().map(FieldGrid::cell_m), Some(cell));
+        assert_eq!(field.grid().map(FieldGrid::samples_added), Some(600));
     }
 }
