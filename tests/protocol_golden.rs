@@ -86,10 +86,11 @@ fn golden_field() -> FieldMessage {
                 t_s: 8.0 + k / 30.0,
                 track_id: (cell_x * 1000.0) as u64 + i % tracks,
                 position: Point3::new(cell_x, 0.125, 0.475),
+                // Offsets of mean zero over the first cell's 42 samples: its means are round.
                 velocity: Vector3::new(
-                    0.25 + 0.0078125 * (i % 5) as f64,
-                    -0.0625 * cell_x * 20.0 + 0.00390625 * (i % 3) as f64,
-                    0.125 - 0.015625 * (i % 4) as f64,
+                    0.25 + 0.0078125 * ((i % 3) as f64 - 1.0),
+                    -0.0625 * cell_x * 20.0 + 0.00390625 * ((i % 6) as f64 - 2.5),
+                    0.125 - 0.015625 * ((i % 2) as f64 - 0.5),
                 ),
             });
         }
@@ -130,7 +131,9 @@ fn the_golden_field_keeps_its_own_rules() {
     }
     // The spreads are those of the samples that made the grid (n - 1 in the denominator).
     let first = &m.cells[0];
-    let u: Vec<f64> = (0..42).map(|i| 0.25 + 0.0078125 * (i % 5) as f64).collect();
+    let u: Vec<f64> = (0..42)
+        .map(|i| 0.25 + 0.0078125 * ((i % 3) as f64 - 1.0))
+        .collect();
     let mean = u.iter().sum::<f64>() / 42.0;
     let std = (u.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / 41.0).sqrt();
     assert!((first[4] - mean).abs() < 1e-12 && (first[7] - std).abs() < 1e-12);

