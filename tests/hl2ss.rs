@@ -22,6 +22,8 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 mod common;
 use common::*;
 
+/// Frames the fake HoloLens streams a session.
+const FRAMES: usize = 40;
 const LOST_RIGHT_FRAME: usize = 7;
 const FIRST_TICKS: u64 = 133_000_000_000;
 /// The sensor clock's stamp of the first exposure, nanoseconds (its own epoch, not the host's).
@@ -309,7 +311,7 @@ fn velocity_difference(exact: &Session, run: &Session) -> (f64, usize) {
     let (re, rr) = (received(exact), received(run));
     let complete = |i: usize| {
         (i.saturating_sub(6)..=i + 6)
-            .filter(|&k| k != LOST_RIGHT_FRAME && k < 40)
+            .filter(|&k| k != LOST_RIGHT_FRAME && k < FRAMES)
             .all(|k| re.contains(&k) && rr.contains(&k))
     };
     let (mut diff, mut speed, mut n) = (0.0, 0.0, 0);
@@ -343,7 +345,7 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let h264 = !codec_args.is_empty();
     let holograms_of_the_field = h264;
     let tmp = tempfile::tempdir().expect("tmp");
-    let frames = 40;
+    let frames = FRAMES;
     // HoloLens 2 geometry on a moving head: a pose located off mid-exposure is another pose.
     let mut spec = ScenarioSpec::new(Scenario::HololensRaw);
     spec.head = ScenarioSpec::new(Scenario::MovingHead).head;

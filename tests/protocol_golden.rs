@@ -560,30 +560,15 @@ fn frame_bytes_sit_where_the_spec_says() {
     assert_eq!(batch.len(), 40 + 2 * 40);
 }
 
-/// Refined vectors of a synthetic HoloLens-like recording, its images carried by `encoding`.
-fn vectors_through(encoding: Encoding, rec: &mrptv::recording::Recording) -> Vec<VelocityVector> {
-    let (w, h) = (rec.rig.width, rec.rig.height);
-    let mut pipeline =
-        mrptv_engine::Pipeline::new(rec.rig.clone(), PipelineConfig::default()).expect("pipeline");
-    let mut out = Vec::new();
-    for entry in &rec.frames {
-        let (l, r) = rec.load(entry).expect("frame");
-        let carry = |p: &[u8]| {
-            let sent = encoding.encode_image(p, w, h).expect("encodes");
-            encoding.decode_image(&sent, w, h).expect("decodes")
-        };
-        let (l, r) = (carry(&l), carry(&r));
-        let view = |p| mrptv_engine::ImageView::new(w as usize, h as usize, p).expect("view");
-        let frame = mrptv_engine::StereoFrame {
-            index: entry.index,
-            t_s: entry.t_s,
-            world_from_rig: entry.world_from_rig,
-            left: view(&l),
-            right: view(&r),
-        };
-        out.extend(pipeline.push(&frame).expect("pushed").vectors);
-    }
-    out
+/// Refined vectors of the moving-head scene (40 frames), its images carried by `encoding`.
+fn vectors_through(encoding: Encoding) -> Vec<mrptv::tables::TrackRow> {
+    let mut run = mrptv::offline::SyntheticRun::new(
+        ScenarioSpec::new(Scenario::MovingHead),
+        PipelineConfig::default(),
+    );
+    run.frames = 40;
+    run.wire = mrptv::offline::Wire::Frames(encoding);
+    run.run(|_| {}).expect("scenario runs").tracks
 }
 
 /// `sparse` carries the kept pixels exactly but paints the background: the detector's local
@@ -592,14 +577,9 @@ fn vectors_through(encoding: Encoding, rec: &mrptv::recording::Recording) -> Vec
 /// here against `raw8` on the moving-head scene (the figures are printed).
 #[test]
 fn sparse_moves_the_vectors_only_as_far_as_the_spec_says() {
-    let tmp = tempfile::tempdir().expect("tmp");
-    let spec = ScenarioSpec::new(Scenario::MovingHead);
-    let particles = spec.default_particles;
-    mrptv::offline::write_synthetic(spec, tmp.path(), 40, particles, 1, |_| {}).expect("synth");
-    let rec = mrptv::recording::Recording::open(tmp.path()).expect("recording");
-    let raw = vectors_through(Encoding::Raw8, &rec);
-    let sparse = vectors_through(Encoding::Sparse, &rec);
-    let key = |v: &VelocityVector| (v.frame_index, v.track_id);
+    let raw = vectors_through(Encoding::Raw8);
+    let sparse = vectors_through(Encoding::Sparse);
+    let key = |v: &mrptv::tables::TrackRow| (v.frame, v.track_id);
     let by_key: BTreeMap<_, _> = sparse.iter().map(|v| (key(v), v)).collect();
     let (mut moved, mut changed, mut speed_errors) = (0.0f64, 0usize, [vec![], vec![], vec![]]);
     let mut paired = 0usize;
@@ -608,10 +588,10 @@ fn sparse_moves_the_vectors_only_as_far_as_the_spec_says() {
             continue;
         };
         paired += 1;
-        changed += usize::from(a.velocity_in_world != b.velocity_in_world);
-        moved = moved.max((a.position_in_world - b.position_in_world).norm());
+        changed += usize::from(a.velocity != b.velocity);
+        moved = moved.max((a.position - b.position).norm());
         for (axis, errors) in speed_errors.iter_mut().enumerate() {
-            errors.push((a.velocity_in_world[axis] - b.velocity_in_world[axis]).abs() * 1e3);
+            errors.push((a.velocity[axis] - b.velocity[axis]).abs() * 1e3);
         }
     }
     let p99 = |e: &mut Vec<f64>| {

@@ -146,6 +146,15 @@ impl<'a> Words<'a> {
         } else {
             String::new()
         };
+        let track_first = if config.tracks.track_first {
+            format!(
+                "; tracks first: {:.1} predicted per frame, {:.0} % of them found in both images",
+                ratio(counts.predicted, frames),
+                100.0 * ratio(counts.found, counts.predicted)
+            )
+        } else {
+            String::new()
+        };
         let noisy = if counts.noisy_images > 0 {
             format!(
                 " (raised for sensor noise in {:.0} % of images)",
@@ -164,7 +173,7 @@ impl<'a> Words<'a> {
             String::new()
         };
         format!(
-            "stereo search {}; linking box +-{} px{first_steps}{rejoins}; velocity \
+            "stereo search {}; linking box +-{} px{first_steps}{rejoins}{track_first}; velocity \
              window {}{}; threshold {} grey levels above the local mean{noisy}{background}",
             self.search,
             config.link.box_half_side_px,

@@ -8,10 +8,12 @@
 //!
 //! | stage | module | in | out |
 //! |---|---|---|---|
+//! | prediction (`link.track_first`) | `predict` | live 3D tracks | each one's position now, projected into both rectified images, with a gate learnt from its misses |
 //! | detection, per image | [`detect`] | [`ImageView`] | [`Detection`]s (centroid, diameter D, brightness B) |
 //! | rectification | [`geometry`] | raw [`geometry::PixelPoint`] | [`geometry::RectPoint`] in a virtual co-directional pair |
 //! | 2D linking, per camera | [`link`] | [`link::Feature`]s of a frame | [`link::LinkedFeature`]s (a 2D track id, a motion) |
-//! | stereo matching | [`stereo`] | left and right linked features | pairs `(left, right)` |
+//! | finding the predicted (`link.track_first`) | `shake` | predictions, both cameras' features | tracks continued by the features nearest their projections; those features claimed |
+//! | stereo matching | [`stereo`] | left and right linked features no prediction claimed | pairs `(left, right)` |
 //! | triangulation | [`geometry::Rectification::triangulate`] | a pair | a point in the rig frame, then `point_in_world = world_from_rig * point_in_rig` |
 //! | 3D tracks | [`tracks`] | the frame's triangulated pairs | 3D tracks (continued, rejoined, new, retired) |
 //! | velocity | [`velocity`] | 3D tracks | [`VelocityVector`]s with 1-sigma errors, centred (M frames late) and causal |
@@ -40,6 +42,8 @@ pub mod geometry;
 pub mod health;
 pub mod link;
 pub mod pipeline;
+mod predict;
+mod shake;
 mod spatial;
 pub mod stereo;
 pub mod synth;

@@ -190,6 +190,25 @@ impl Rectification {
         })
     }
 
+    /// Where a point of the rig frame lies in the rectified left and right images (what
+    /// [`Self::triangulate`] inverts); `None` at or behind the cameras' plane.
+    pub fn project(&self, point_in_rig: &Point3<f64>) -> Option<(RectPoint, RectPoint)> {
+        let p = self.rect_from_left * point_in_rig;
+        (p.z > 1e-9).then(|| {
+            let y = self.focal_px * p.y / p.z;
+            (
+                RectPoint {
+                    x: self.focal_px * p.x / p.z,
+                    y,
+                },
+                RectPoint {
+                    x: self.focal_px * (p.x - self.baseline_m) / p.z,
+                    y,
+                },
+            )
+        })
+    }
+
     /// Standard deviation of depth caused by a disparity error of `disparity_sigma_px`.
     pub fn depth_sigma_m(&self, depth_m: f64, disparity_sigma_px: f64) -> f64 {
         depth_m * depth_m * disparity_sigma_px / (self.focal_px * self.baseline_m)

@@ -4,6 +4,7 @@ use super::PipelineConfig;
 use crate::detect::{Detection, Detector};
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::link::{CameraLinker, CostScale, Feature, LinkedFeature};
+use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
 
 /// One camera's stages, which need nothing from the other camera: detection, rectification and
@@ -21,11 +22,12 @@ pub(super) struct CameraOutput {
 
 impl CameraOutput {
     /// Per detection (of `detections`), whether its feature continues a track from an earlier
-    /// frame.
-    pub(super) fn continued(&self, detections: usize) -> Vec<bool> {
+    /// frame: a 2D track, or a 3D track's prediction that `claimed` it (index for index with
+    /// the features).
+    pub(super) fn continued(&self, detections: usize, claimed: &[bool]) -> Vec<bool> {
         let mut continued = vec![false; detections];
-        for (feature, &d) in self.linked.iter().zip(&self.detection_of) {
-            continued[d] |= feature.age > 1;
+        for ((feature, &d), &claimed) in self.linked.iter().zip(&self.detection_of).zip(claimed) {
+            continued[d] |= feature.age > 1 || claimed;
         }
         continued
     }
@@ -39,23 +41,26 @@ impl Camera {
         }
     }
 
-    /// Detects into `detections`, looking again where the tracks expect particles, and links
-    /// the rectified features (detections whose centroid the lens model cannot undistort are
-    /// left out).
+    /// Detects into `detections`, looking again where the tracks expect particles (the 2D
+    /// tracks' expectations and the 3D tracks' `predicted` positions, rectified, with their
+    /// gates), and links the rectified features (detections whose centroid the lens model
+    /// cannot undistort are left out). `to_rect` and `from_rect` map this camera's raw pixels
+    /// to the rectified image and back.
     pub(super) fn push(
         &mut self,
         image: ImageView<'_>,
         config: &PipelineConfig,
         scale: CostScale,
         detections: &mut Vec<Detection>,
-        to_rect: impl Fn(PixelPoint) -> Option<RectPoint>,
-        from_rect: impl Fn(RectPoint) -> Option<PixelPoint>,
+        predicted: &[(RectPoint, f64)],
+        (to_rect, from_rect): (
+            impl Fn(PixelPoint) -> Option<RectPoint>,
+            impl Fn(RectPoint) -> Option<PixelPoint>,
+        ),
     ) -> CameraOutput {
         self.detector.detect(image, &config.detect, detections);
         if config.detect.separate_expected {
-            let expected: Vec<PixelPoint> = self
-                .linker
-                .expected_positions()
+            let expected: Vec<PixelPoint> = expected_positions(&self.linker, predicted)
                 .filter_map(&from_rect)
                 .collect();
             self.detector
@@ -82,4 +87,26 @@ impl Camera {
             detection_of,
         }
     }
+}
+
+/// Where particles are expected in this image, rectified: each 3D track's prediction (`(point,
+/// gate)`), and the 2D tracks' expectations that no prediction's gate covers (two expectations
+/// of one particle would be fitted as two particles).
+fn expected_positions<'a>(
+    linker: &'a CameraLinker,
+    predicted: &'a [(RectPoint, f64)],
+) -> impl Iterator<Item = RectPoint> + 'a {
+    let largest_gate = predicted.iter().map(|p| p.1).fold(0.0, f64::max);
+    let grid = PointGrid::new(
+        predicted.iter().enumerate().map(|(i, p)| (p.0, i)),
+        GRID_CELL_PX,
+    );
+    let covered = move |e: &RectPoint| {
+        grid.near(e.x, e.y, largest_gate).any(|(p, i)| {
+            let gate = predicted[*i].1;
+            (p.x - e.x).powi(2) + (p.y - e.y).powi(2) <= gate * gate
+        })
+    };
+    let own = linker.expected_positions().filter(move |e| !covered(e));
+    predicted.iter().map(|p| p.0).chain(own)
 }

@@ -60,6 +60,10 @@ pub struct FrameStats {
     pub fit_components_line: usize,
     /// New stereo pairs that continued a broken 3D track (`link.rejoin_frames`).
     pub rejoined: usize,
+    /// 3D tracks that predicted their particle in this frame (`link.track_first`).
+    pub predicted: usize,
+    /// ... and found it in both images.
+    pub found: usize,
     /// Detections (both cameras) taken for fixtures of the room or sensor and not matched.
     pub fixtures: usize,
     /// Images (0 to 2) thresholded above `contrast_c` because of their noise.
@@ -89,6 +93,8 @@ impl std::ops::AddAssign<&FrameStats> for FrameStats {
         self.fit_components_cubic += s.fit_components_cubic;
         self.fit_components_line += s.fit_components_line;
         self.rejoined += s.rejoined;
+        self.predicted += s.predicted;
+        self.found += s.found;
         self.fixtures += s.fixtures;
         self.noisy_images += s.noisy_images;
         self.learnt_search += s.learnt_search;

@@ -13,6 +13,7 @@ use crate::config::{check_non_negative, ConfigError};
 use crate::detect::Separation;
 use crate::geometry::{RectPoint, Rectification};
 use crate::pipeline::{MatchedPoint, PipelineConfig};
+use crate::predict::Predictor;
 
 mod rejoin;
 
@@ -31,6 +32,11 @@ pub struct TrackConfig {
     pub rejoin_tolerance_px: f64,
     /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
     pub rejoin_tolerance_sigmas: f64,
+    /// Track first: every 3D track of three samples or more predicts its particle in the new
+    /// frame and takes the detections nearest its projections in both images (learnt gates),
+    /// before the per-camera chain (2D linking, stereo matching) runs on the detections no
+    /// track explains. False: the chain alone (the method).
+    pub track_first: bool,
 }
 
 impl Default for TrackConfig {
@@ -39,6 +45,7 @@ impl Default for TrackConfig {
             rejoin_frames: 2,
             rejoin_tolerance_px: 3.0,
             rejoin_tolerance_sigmas: 12.0,
+            track_first: false,
         }
     }
 }
@@ -48,6 +55,7 @@ impl TrackConfig {
     pub fn method() -> Self {
         Self {
             rejoin_frames: 0,
+            track_first: false,
             ..Self::default()
         }
     }
@@ -100,6 +108,8 @@ pub(crate) struct Track3d {
     /// The right camera track it is paired with now.
     pub(crate) right_track: u64,
     pub(crate) samples: VecDeque<Sample>,
+    /// How well it predicts itself (track-first).
+    pub(crate) predictor: Predictor,
 }
 
 impl Track3d {
@@ -117,6 +127,9 @@ pub(crate) struct Pair {
     pub(crate) sample: Sample,
     pub(crate) point: MatchedPoint,
 }
+
+/// The keys of tracks continued by their own predictions: apart from every camera track id.
+const FOUND_KEYS: u64 = 1 << 63;
 
 /// Where a 3D track without a pair this frame came from, so it can go back if no new pair
 /// rejoins it.
@@ -187,6 +200,39 @@ impl Tracks {
     /// How many tracks are live.
     pub(crate) fn live_count(&self) -> usize {
         self.live.len()
+    }
+
+    /// The live tracks, by key, to be predicted.
+    pub(crate) fn live_mut(&mut self) -> impl Iterator<Item = (u64, &mut Track3d)> {
+        self.live.iter_mut().map(|(k, t)| (*k, t))
+    }
+
+    /// Frames a live track may go unseen and still be continued.
+    pub(crate) fn max_gap_frames(&self) -> u64 {
+        self.limits.max_gap_frames
+    }
+
+    /// Continues the tracks (by key) whose particles their predictions found this frame, each
+    /// with its sample, the distance it was found from the prediction and its point (appended
+    /// to `points`). They leave the per-camera chain's keys for their own, so no stereo pair
+    /// of this frame continues them a second time.
+    pub(crate) fn take_found(
+        &mut self,
+        found: Vec<(u64, Sample, f64, MatchedPoint)>,
+        points: &mut Vec<MatchedPoint>,
+    ) {
+        for (key, sample, miss_px, point) in found {
+            let Some(mut track) = self.live.remove(&key) else {
+                continue;
+            };
+            track.predictor.score(&sample, miss_px);
+            points.push(MatchedPoint {
+                track_id: track.id,
+                ..point
+            });
+            push_sample(&mut track, sample, self.limits.history_frames);
+            self.live.insert(FOUND_KEYS | track.id, track);
+        }
     }
 
     /// The depths of the live tracks seen in frame `seq` for at least `samples` samples.
@@ -263,7 +309,7 @@ impl Tracks {
     fn gather_recent_orphans(&mut self, seq: u64, orphans: &mut Vec<(Orphan, Track3d)>) {
         let reach = u64::from(self.config.rejoin_frames) + 1;
         for (left_track, track) in std::mem::take(&mut self.live) {
-            if seq - track.last_seq() <= reach {
+            if seq - track.last_seq() <= reach && track.last_seq() != seq {
                 orphans.push((Orphan::Coasting(left_track), track));
             } else {
                 self.live.insert(left_track, track);
@@ -300,6 +346,7 @@ impl Tracks {
                         id: self.next_id,
                         right_track: birth.right_track,
                         samples: VecDeque::new(),
+                        predictor: Predictor::default(),
                     }
                 }
             };

@@ -1,0 +1,265 @@
+//! Track-first step 1: every live 3D track predicts where its particle is at the new frame's
+//! time, in the world frame (so head motion is no prediction error), from its own recent
+//! samples; the frame's pose and the rectification carry the prediction into both images.
+//!
+//! Two models predict: a line through the last few samples and a quadratic through a few more.
+//! Each track scores both against where its particle was then found and follows the one that
+//! has missed less (a vortex's curved path wants the quadratic, a noisy straight one the line).
+//! Its search radius is a few times its own mean miss in the images, learnt the same way; a
+//! track that has not been scored yet borrows the scene's.
+
+use nalgebra::{Isometry3, Point3};
+
+use crate::geometry::{RectPoint, Rectification};
+use crate::spatial::median;
+use crate::tracks::{Sample, Track3d};
+use crate::velocity::fit::{fit_line, fit_quadratic};
+
+/// Samples a track needs before it predicts itself (below that the per-frame chain carries it).
+pub(crate) const MIN_SAMPLES: usize = 3;
+/// Samples the line is fitted to: enough to average centroid noise, few enough to turn.
+const LINE_SAMPLES: usize = 4;
+/// Samples the quadratic is fitted to.
+const QUADRATIC_SAMPLES: usize = 6;
+/// A found particle lies within this many of its track's miss sigmas of the prediction.
+pub(crate) const GATE_SIGMAS: f64 = 4.0;
+/// No search radius is narrower: two particle images whose centres are closer than a pixel
+/// are one detection, so a narrower gate would only lose particles to centroid noise.
+pub(crate) const MIN_GATE_PX: f64 = 1.0;
+/// Weight of the newest miss in a track's running means.
+const MISS_WEIGHT: f64 = 0.3;
+
+/// The models a track predicts with.
+const LINE: usize = 0;
+const QUADRATIC: usize = 1;
+
+/// What a track has learnt of how well it predicts itself.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Predictor {
+    /// Running mean squared 3D miss of the line and of the quadratic, metres squared.
+    miss_sq_m: [Option<f64>; 2],
+    /// Running mean squared miss of the followed model in the images, rectified pixels squared.
+    miss_sq_px: Option<f64>,
+    /// The last prediction of each model, and the frame it was for, to be scored when found.
+    pending: Option<(u64, [Option<Point3<f64>>; 2])>,
+}
+
+impl Predictor {
+    /// The track's own miss sigma in the images, once it has one.
+    pub(crate) fn sigma_px(&self) -> Option<f64> {
+        self.miss_sq_px.map(f64::sqrt)
+    }
+
+    /// Scores this frame's predictions against where the particle was found: `sample`, at
+    /// `miss_px` rectified pixels (both cameras together) from the followed prediction.
+    pub(crate) fn score(&mut self, sample: &Sample, miss_px: f64) {
+        let Some((seq, predicted)) = self.pending.take() else {
+            return;
+        };
+        if seq != sample.seq {
+            return;
+        }
+        for (model, p) in predicted.iter().enumerate() {
+            if let Some(p) = p {
+                let miss = (p - sample.point_in_world).norm_squared();
+                self.miss_sq_m[model] = Some(running_mean(self.miss_sq_m[model], miss));
+            }
+        }
+        self.miss_sq_px = Some(running_mean(self.miss_sq_px, miss_px * miss_px));
+    }
+
+    /// The model to follow: the quadratic once it has missed less than the line.
+    fn followed(&self) -> usize {
+        match self.miss_sq_m {
+            [Some(line), Some(quadratic)] if quadratic < line => QUADRATIC,
+            _ => LINE,
+        }
+    }
+}
+
+fn running_mean(mean: Option<f64>, value: f64) -> f64 {
+    mean.map_or(value, |m| m + MISS_WEIGHT * (value - m))
+}
+
+/// One track's prediction for the new frame.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Prediction {
+    /// The track's key among the live tracks.
+    pub(crate) key: u64,
+    /// Its projection into the rectified left image.
+    pub(crate) left: RectPoint,
+    /// Its projection into the rectified right image.
+    pub(crate) right: RectPoint,
+    /// How far from the projections, rectified pixels, its particle may be found.
+    pub(crate) gate_px: f64,
+}
+
+/// Predicts every live track of at least [`MIN_SAMPLES`] samples (unseen for at most
+/// `max_gap_frames`) at frame `seq`, time `t_s`, seen from pose `world_from_rig`. A track with
+/// no miss sigma of its own uses the median of those that have one, or else
+/// `fallback_sigma_px` (the particle images' radius).
+pub(crate) fn predict<'a>(
+    tracks: impl Iterator<Item = (u64, &'a mut Track3d)>,
+    seq: u64,
+    t_s: f64,
+    world_from_rig: &Isometry3<f64>,
+    rect: &Rectification,
+    max_gap_frames: u64,
+    fallback_sigma_px: f64,
+) -> Vec<Prediction> {
+    let rig_from_world = world_from_rig.inverse();
+    let mut predicted: Vec<(Prediction, Option<f64>)> = Vec::new();
+    for (key, track) in tracks {
+        let recent = seq - track.last_seq() <= max_gap_frames + 1;
+        if track.samples.len() < MIN_SAMPLES || !recent {
+            continue;
+        }
+        let models = model_predictions(track, t_s);
+        track.predictor.pending = Some((seq, models));
+        let Some(point_in_world) = models[track.predictor.followed()].or(models[LINE]) else {
+            continue;
+        };
+        let Some((left, right)) = rect.project(&(rig_from_world * point_in_world)) else {
+            continue;
+        };
+        let prediction = Prediction {
+            key,
+            left,
+            right,
+            gate_px: 0.0,
+        };
+        predicted.push((prediction, track.predictor.sigma_px()));
+    }
+    let mut own: Vec<f64> = predicted.iter().filter_map(|(_, s)| *s).collect();
+    let scene_sigma_px = if own.is_empty() {
+        fallback_sigma_px
+    } else {
+        median(&mut own)
+    };
+    predicted
+        .into_iter()
+        .map(|(p, sigma)| Prediction {
+            gate_px: (GATE_SIGMAS * sigma.unwrap_or(scene_sigma_px)).max(MIN_GATE_PX),
+            ..p
+        })
+        .collect()
+}
+
+/// Where the line and the quadratic put the track's particle at `t_s`.
+fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
+    let newest = |n: usize| -> Vec<(f64, Point3<f64>)> {
+        let skip = track.samples.len().saturating_sub(n);
+        track
+            .samples
+            .iter()
+            .skip(skip)
+            .map(|s| (s.t_s, s.point_in_world))
+            .collect()
+    };
+    let line = fit_line(&newest(LINE_SAMPLES), t_s).map(|f| f.position);
+    let quadratic = (track.samples.len() > LINE_SAMPLES)
+        .then(|| fit_quadratic(&newest(QUADRATIC_SAMPLES), t_s))
+        .flatten()
+        .map(|f| f.position);
+    [line, quadratic]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::detect::Separation;
+    use crate::geometry::RectPoint;
+    use crate::synth::{Scenario, ScenarioSpec};
+    use nalgebra::Vector3;
+    use std::collections::VecDeque;
+
+    fn track(path: impl Fn(f64) -> Point3<f64>, frames: u64) -> Track3d {
+        let samples = (1..=frames)
+            .map(|seq| Sample {
+                seq,
+                frame_index: seq,
+                t_s: seq as f64 * 0.1,
+                point_in_world: path(seq as f64 * 0.1),
+                depth_m: 0.5,
+                separation: Separation::Clear,
+                left_rect: RectPoint::default(),
+                camera_in_world: Point3::origin(),
+            })
+            .collect::<VecDeque<_>>();
+        Track3d {
+            id: 1,
+            right_track: 1,
+            samples,
+            predictor: Predictor::default(),
+        }
+    }
+
+    #[test]
+    fn the_projection_is_what_triangulation_inverts() {
+        let rig = ScenarioSpec::new(Scenario::HololensRaw).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let point = Point3::new(0.03, -0.02, 0.45);
+        let (l, r) = rect.project(&point).expect("in front");
+        let back = rect.triangulate(l, r).expect("triangulates");
+        assert!((back.point_in_rig - point).norm() < 1e-12, "{back:?}");
+    }
+
+    #[test]
+    fn a_curved_path_is_followed_by_the_quadratic_once_it_has_missed_less() {
+        let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
+        let mut t = track(path, 6);
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let pose = Isometry3::identity();
+        for seq in 7..10 {
+            let at = seq as f64 * 0.1;
+            let p = predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
+            assert_eq!(p.len(), 1);
+            let sample = Sample {
+                seq,
+                t_s: at,
+                point_in_world: path(at),
+                ..t.samples[0].clone()
+            };
+            t.predictor.score(&sample, 0.5);
+            t.samples.push_back(sample);
+        }
+        assert_eq!(t.predictor.followed(), QUADRATIC);
+        let models = model_predictions(&t, 1.0);
+        let miss = (models[QUADRATIC].expect("fitted") - path(1.0)).norm();
+        assert!(miss < 1e-9, "a quadratic path is predicted exactly: {miss}");
+        assert!((t.predictor.sigma_px().expect("scored") - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_track_unscored_borrows_the_scene_gate_and_a_stale_one_predicts_nothing() {
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let path = |t: f64| Point3::from(Vector3::new(0.1, 0.0, 0.0) * t + Vector3::z() * 0.5);
+        let (mut a, mut b) = (track(path, 4), track(path, 4));
+        b.predictor.miss_sq_px = Some(0.25);
+        let both = [(1, &mut a), (2, &mut b)].into_iter();
+        let p = predict(both, 5, 0.5, &Isometry3::identity(), &rect, 2, 9.0);
+        assert_eq!(p.iter().map(|p| p.gate_px).collect::<Vec<_>>(), [2.0, 2.0]);
+        let p = predict(
+            std::iter::once((1, &mut a)),
+            5,
+            0.5,
+            &Isometry3::identity(),
+            &rect,
+            2,
+            0.1,
+        );
+        assert_eq!(p[0].gate_px, MIN_GATE_PX);
+        let stale = predict(
+            std::iter::once((1, &mut a)),
+            8,
+            0.8,
+            &Isometry3::identity(),
+            &rect,
+            2,
+            1.0,
+        );
+        assert!(stale.is_empty());
+    }
+}

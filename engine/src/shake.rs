@@ -1,0 +1,205 @@
+//! Track-first step 2: each predicted particle is looked for in both images at once. Its
+//! detections are the left and right features nearest its two projections, within its gate,
+//! settled for all tracks together (globally cheapest first, each feature used once): the two
+//! image positions are consistent by construction, so no epipolar band and no pair choice is
+//! needed. Touching images were already parted by fits seeded at the predictions
+//! ([`crate::Detector::separate_expected`]).
+//!
+//! A track found in one image only claims that detection (it is explained, and must not pair
+//! with another particle's) and coasts; a track found in neither coasts.
+
+use crate::link::LinkedFeature;
+use crate::predict::Prediction;
+use crate::spatial::{PointGrid, GRID_CELL_PX};
+
+/// A predicted particle found in both images.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Found {
+    /// The prediction's index.
+    pub(crate) prediction: usize,
+    /// The left feature's index.
+    pub(crate) left: usize,
+    /// The right feature's index.
+    pub(crate) right: usize,
+    /// Distance of the two features from the two projections, root of the summed squares,
+    /// rectified pixels.
+    pub(crate) miss_px: f64,
+}
+
+/// What the predictions found in this frame's features.
+#[derive(Debug, Default)]
+pub(crate) struct Shaken {
+    /// Particles found in both images.
+    pub(crate) found: Vec<Found>,
+    /// Per left feature, whether a prediction claimed it.
+    pub(crate) claimed_left: Vec<bool>,
+    /// Per right feature, whether a prediction claimed it.
+    pub(crate) claimed_right: Vec<bool>,
+}
+
+/// Looks for every prediction among the left and right features (fixtures never count).
+pub(crate) fn find(
+    predictions: &[Prediction],
+    left: &[LinkedFeature],
+    right: &[LinkedFeature],
+) -> Shaken {
+    if predictions.is_empty() {
+        return Shaken {
+            found: Vec::new(),
+            claimed_left: vec![false; left.len()],
+            claimed_right: vec![false; right.len()],
+        };
+    }
+    let left_near = near_each(predictions, left, |p| p.left);
+    let right_near = near_each(predictions, right, |p| p.right);
+    let mut both: Vec<(f64, usize, usize, usize)> = Vec::new();
+    for (i, (ls, rs)) in left_near.iter().zip(&right_near).enumerate() {
+        for &(dl, l) in ls {
+            for &(dr, r) in rs {
+                both.push((dl + dr, i, l, r));
+            }
+        }
+    }
+    both.sort_by(|a, b| {
+        a.0.total_cmp(&b.0)
+            .then((a.1, a.2, a.3).cmp(&(b.1, b.2, b.3)))
+    });
+    let mut done = vec![false; predictions.len()];
+    let mut shaken = Shaken {
+        found: Vec::new(),
+        claimed_left: vec![false; left.len()],
+        claimed_right: vec![false; right.len()],
+    };
+    for (cost, i, l, r) in both {
+        if done[i] || shaken.claimed_left[l] || shaken.claimed_right[r] {
+            continue;
+        }
+        done[i] = true;
+        shaken.claimed_left[l] = true;
+        shaken.claimed_right[r] = true;
+        let miss_px = cost.sqrt();
+        shaken.found.push(Found {
+            prediction: i,
+            left: l,
+            right: r,
+            miss_px,
+        });
+    }
+    claim_single(&left_near, &done, &mut shaken.claimed_left);
+    claim_single(&right_near, &done, &mut shaken.claimed_right);
+    shaken.found.sort_by_key(|f| f.prediction);
+    shaken
+}
+
+/// Per prediction, the features within its gate of its projection (`at`), with their squared
+/// distances.
+fn near_each(
+    predictions: &[Prediction],
+    features: &[LinkedFeature],
+    at: impl Fn(&Prediction) -> crate::geometry::RectPoint,
+) -> Vec<Vec<(f64, usize)>> {
+    let grid = PointGrid::new(
+        features
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| !f.fixed)
+            .map(|(i, f)| (f.feature.rect, i)),
+        GRID_CELL_PX,
+    );
+    predictions
+        .iter()
+        .map(|p| {
+            let c = at(p);
+            let gate_sq = p.gate_px * p.gate_px;
+            grid.near(c.x, c.y, p.gate_px)
+                .map(|(q, i)| ((q.x - c.x).powi(2) + (q.y - c.y).powi(2), *i))
+                .filter(|(d, _)| *d <= gate_sq)
+                .collect()
+        })
+        .collect()
+}
+
+/// Predictions found in one image only claim their nearest free feature there.
+fn claim_single(near: &[Vec<(f64, usize)>], done: &[bool], claimed: &mut [bool]) {
+    let mut single: Vec<(f64, usize, usize)> = near
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !done[*i])
+        .flat_map(|(i, fs)| fs.iter().map(move |&(d, f)| (d, i, f)))
+        .collect();
+    single.sort_by(|a, b| a.0.total_cmp(&b.0).then((a.1, a.2).cmp(&(b.1, b.2))));
+    let mut taken = vec![false; near.len()];
+    for (_, i, f) in single {
+        if !taken[i] && !claimed[f] {
+            taken[i] = true;
+            claimed[f] = true;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::RectPoint;
+    use crate::link::Feature;
+
+    fn feature(x: f64, y: f64) -> LinkedFeature {
+        LinkedFeature {
+            feature: Feature {
+                rect: RectPoint { x, y },
+                diameter_px: 4.0,
+                brightness: 100.0,
+            },
+            track_id: 1,
+            motion_px: None,
+            age: 1,
+            fixed: false,
+        }
+    }
+
+    fn prediction(key: u64, lx: f64, rx: f64, y: f64) -> Prediction {
+        Prediction {
+            key,
+            left: RectPoint { x: lx, y },
+            right: RectPoint { x: rx, y },
+            gate_px: 2.0,
+        }
+    }
+
+    #[test]
+    fn each_feature_serves_one_track_the_closest_first() {
+        // Two tracks predicted half a pixel apart in the left image, one feature there:
+        // the closer track takes it in both images; the other finds only its right feature.
+        let predictions = [prediction(1, 10.0, 0.0, 5.0), prediction(2, 10.5, 6.0, 5.0)];
+        let left = [feature(10.1, 5.0)];
+        let right = [feature(0.2, 5.1), feature(6.0, 5.0), feature(30.0, 5.0)];
+        let s = find(&predictions, &left, &right);
+        assert_eq!(s.found.len(), 1);
+        assert_eq!(
+            (s.found[0].prediction, s.found[0].left, s.found[0].right),
+            (0, 0, 0)
+        );
+        assert!((s.found[0].miss_px - (0.01f64 + 0.04 + 0.01).sqrt()).abs() < 1e-12);
+        assert_eq!(s.claimed_left, [true]);
+        assert_eq!(
+            s.claimed_right,
+            [true, true, false],
+            "the second track's own detection"
+        );
+    }
+
+    #[test]
+    fn nothing_outside_the_gate_and_no_fixture_is_found() {
+        let predictions = [prediction(1, 10.0, 0.0, 5.0)];
+        let mut fixture = feature(10.0, 5.0);
+        fixture.fixed = true;
+        let s = find(
+            &predictions,
+            &[fixture, feature(13.0, 5.0)],
+            &[feature(0.0, 5.0)],
+        );
+        assert!(s.found.is_empty());
+        assert_eq!(s.claimed_left, [false, false]);
+        assert_eq!(s.claimed_right, [true]);
+    }
+}
