@@ -12,7 +12,7 @@
 //! | detection, per image | [`detect`] | [`ImageView`] | [`Detection`]s (centroid, diameter D, brightness B) |
 //! | rectification | [`geometry`] | raw [`geometry::PixelPoint`] | [`geometry::RectPoint`] in a virtual co-directional pair |
 //! | 2D linking, per camera | [`link`] | [`link::Feature`]s of a frame | [`link::LinkedFeature`]s (a 2D track id, a motion) |
-//! | finding the predicted (`link.track_first`) | `shake` | predictions, both cameras' features | tracks continued by the features nearest their projections; those features claimed |
+//! | finding the predicted (`link.track_first`) | `shake` | predictions, both cameras' features and images | tracks continued by the features nearest their projections (overlapping ones refitted with their tracks' learnt shapes); those features claimed |
 //! | stereo matching | [`stereo`] | left and right linked features no prediction claimed | pairs `(left, right)` |
 //! | triangulation | [`geometry::Rectification::triangulate`] | a pair | a point in the rig frame, then `point_in_world = world_from_rig * point_in_rig` |
 //! | 3D tracks | [`tracks`] | the frame's triangulated pairs | 3D tracks (continued, rejoined, new, retired) |

@@ -15,8 +15,11 @@ use crate::spatial::median;
 use crate::tracks::{Sample, Track3d};
 use crate::velocity::fit::{fit_line, fit_quadratic};
 
-/// Samples a track needs before it predicts itself (below that the per-frame chain carries it).
-pub(crate) const MIN_SAMPLES: usize = 3;
+/// Samples a track needs before it predicts itself; below that the per-frame chain carries
+/// it. A prediction keeps finding what resembles its particle, so a track adopted too young
+/// may be a ghost pair the chain would have dropped: in dense seeding a few of those last five
+/// frames, almost none eight.
+pub(crate) const MIN_SAMPLES: usize = 8;
 /// Samples the line is fitted to: enough to average centroid noise, few enough to turn.
 const LINE_SAMPLES: usize = 4;
 /// Samples the quadratic is fitted to.
@@ -96,8 +99,9 @@ pub(crate) struct Prediction {
 
 /// Predicts every live track of at least [`MIN_SAMPLES`] samples (unseen for at most
 /// `max_gap_frames`) at frame `seq`, time `t_s`, seen from pose `world_from_rig`. A track with
-/// no miss sigma of its own uses the median of those that have one, or else
-/// `fallback_sigma_px` (the particle images' radius).
+/// no miss sigma of its own uses the median of those that have one, or else the particle
+/// images' radius `image_radius_px`; no gate is wider than that radius (a detection farther
+/// from the prediction than its own radius is another blob).
 pub(crate) fn predict<'a>(
     tracks: impl Iterator<Item = (u64, &'a mut Track3d)>,
     seq: u64,
@@ -105,7 +109,7 @@ pub(crate) fn predict<'a>(
     world_from_rig: &Isometry3<f64>,
     rect: &Rectification,
     max_gap_frames: u64,
-    fallback_sigma_px: f64,
+    image_radius_px: f64,
 ) -> Vec<Prediction> {
     let rig_from_world = world_from_rig.inverse();
     let mut predicted: Vec<(Prediction, Option<f64>)> = Vec::new();
@@ -132,15 +136,19 @@ pub(crate) fn predict<'a>(
     }
     let mut own: Vec<f64> = predicted.iter().filter_map(|(_, s)| *s).collect();
     let scene_sigma_px = if own.is_empty() {
-        fallback_sigma_px
+        image_radius_px
     } else {
         median(&mut own)
     };
+    let widest = image_radius_px.max(MIN_GATE_PX);
     predicted
         .into_iter()
-        .map(|(p, sigma)| Prediction {
-            gate_px: (GATE_SIGMAS * sigma.unwrap_or(scene_sigma_px)).max(MIN_GATE_PX),
-            ..p
+        .map(|(p, sigma)| {
+            let gate_px = GATE_SIGMAS * sigma.unwrap_or(scene_sigma_px);
+            Prediction {
+                gate_px: gate_px.clamp(MIN_GATE_PX, widest),
+                ..p
+            }
         })
         .collect()
 }
@@ -191,6 +199,7 @@ mod tests {
             right_track: 1,
             samples,
             predictor: Predictor::default(),
+            shapes: [None; 2],
         }
     }
 
@@ -207,11 +216,11 @@ mod tests {
     #[test]
     fn a_curved_path_is_followed_by_the_quadratic_once_it_has_missed_less() {
         let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
-        let mut t = track(path, 6);
+        let mut t = track(path, MIN_SAMPLES as u64);
         let rig = ScenarioSpec::new(Scenario::Flume).rig;
         let rect = Rectification::new(&rig).expect("rectifies");
         let pose = Isometry3::identity();
-        for seq in 7..10 {
+        for seq in MIN_SAMPLES as u64 + 1..MIN_SAMPLES as u64 + 4 {
             let at = seq as f64 * 0.1;
             let p = predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
             assert_eq!(p.len(), 1);
@@ -225,41 +234,45 @@ mod tests {
             t.samples.push_back(sample);
         }
         assert_eq!(t.predictor.followed(), QUADRATIC);
-        let models = model_predictions(&t, 1.0);
-        let miss = (models[QUADRATIC].expect("fitted") - path(1.0)).norm();
+        let models = model_predictions(&t, 1.5);
+        let miss = (models[QUADRATIC].expect("fitted") - path(1.5)).norm();
         assert!(miss < 1e-9, "a quadratic path is predicted exactly: {miss}");
         assert!((t.predictor.sigma_px().expect("scored") - 0.5).abs() < 1e-12);
     }
 
     #[test]
-    fn a_track_unscored_borrows_the_scene_gate_and_a_stale_one_predicts_nothing() {
+    fn gates_come_from_misses_and_stay_within_a_pixel_and_the_image_radius() {
         let rig = ScenarioSpec::new(Scenario::Flume).rig;
         let rect = Rectification::new(&rig).expect("rectifies");
         let path = |t: f64| Point3::from(Vector3::new(0.1, 0.0, 0.0) * t + Vector3::z() * 0.5);
-        let (mut a, mut b) = (track(path, 4), track(path, 4));
+        let n = MIN_SAMPLES as u64;
+        let (mut a, mut b) = (track(path, n), track(path, n));
         b.predictor.miss_sq_px = Some(0.25);
-        let both = [(1, &mut a), (2, &mut b)].into_iter();
-        let p = predict(both, 5, 0.5, &Isometry3::identity(), &rect, 2, 9.0);
-        assert_eq!(p.iter().map(|p| p.gate_px).collect::<Vec<_>>(), [2.0, 2.0]);
-        let p = predict(
-            std::iter::once((1, &mut a)),
-            5,
-            0.5,
-            &Isometry3::identity(),
-            &rect,
-            2,
-            0.1,
+        let pose = Isometry3::identity();
+        let gates = |tracks: Vec<(u64, &mut Track3d)>, seq: u64, radius_px: f64| {
+            predict(
+                tracks.into_iter(),
+                seq,
+                0.1 * seq as f64,
+                &pose,
+                &rect,
+                2,
+                radius_px,
+            )
+            .iter()
+            .map(|p| p.gate_px)
+            .collect::<Vec<_>>()
+        };
+        // The unscored track borrows the scored one's sigma: 4 x 0.5 px.
+        assert_eq!(
+            gates(vec![(1, &mut a), (2, &mut b)], n + 1, 9.0),
+            [2.0, 2.0]
         );
-        assert_eq!(p[0].gate_px, MIN_GATE_PX);
-        let stale = predict(
-            std::iter::once((1, &mut a)),
-            8,
-            0.8,
-            &Isometry3::identity(),
-            &rect,
-            2,
-            1.0,
-        );
-        assert!(stale.is_empty());
+        // Alone, it starts from the image radius, here within the one-pixel floor...
+        assert_eq!(gates(vec![(1, &mut a)], n + 1, 0.1), [MIN_GATE_PX]);
+        // ... and no gate is wider than the particle images' radius.
+        assert_eq!(gates(vec![(2, &mut b)], n + 1, 1.5), [1.5]);
+        // A track unseen for longer than the gap it may coast over predicts nothing.
+        assert!(gates(vec![(1, &mut a)], n + 4, 1.0).is_empty());
     }
 }

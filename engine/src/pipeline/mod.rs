@@ -9,10 +9,11 @@ use std::collections::VecDeque;
 use nalgebra::{Isometry3, Point3};
 
 use crate::config::ConfigError;
-use crate::detect::Detection;
-use crate::geometry::{CalibrationError, Rectification, StereoRig};
+use crate::detect::{Detection, Separation};
+use crate::geometry::{CalibrationError, RectPoint, Rectification, StereoRig};
 use crate::link::{CostScale, LinkedFeature};
 use crate::predict::{self, Prediction};
+use crate::shake::refine::{self, CameraShake, Shape};
 use crate::shake::{self, Shaken};
 use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoSearch};
 use crate::tracks::{Pair, Sample, Tracks};
@@ -68,6 +69,10 @@ pub enum PipelineError {
 /// ghosts rarely last that long.
 const CONFIRMED_SAMPLES: usize = 5;
 
+/// A found track learns its particle's shapes again every this many samples (the shape
+/// follows the particle's depth).
+const RELEARN_SHAPE_SAMPLES: usize = 10;
+
 /// The engine's state machine: push stereo frames in time order, get each frame's output.
 pub struct Pipeline {
     config: PipelineConfig,
@@ -89,6 +94,8 @@ pub struct Pipeline {
     /// The particle images' radius in the last image with detections, pixels: the scale a
     /// prediction's search starts from before any track has learnt its own.
     image_radius_px: f64,
+    /// What each camera's shake has learnt (track-first).
+    shake: [CameraShake; 2],
 }
 
 impl Pipeline {
@@ -124,6 +131,7 @@ impl Pipeline {
             seq: 0,
             recent_frames: VecDeque::new(),
             image_radius_px: 1.0,
+            shake: Default::default(),
         })
     }
 
@@ -165,7 +173,11 @@ impl Pipeline {
         };
         let predictions = self.predict(frame, seq);
         let (left, right) = self.detect_and_link(frame, &predictions, &mut out);
-        let shaken = shake::find(&predictions, &left.linked, &right.linked);
+        let band_px = self
+            .learnt_search()
+            .unwrap_or(self.stereo_search)
+            .epipolar_band_px;
+        let shaken = shake::find(&predictions, &left.linked, &right.linked, band_px);
         self.take_found(frame, seq, (&left, &right), &predictions, &shaken, &mut out);
         let pairs = self.match_pairs(&left, &right, &shaken, &mut out.stats);
         let pairs = self.triangulate(frame, seq, &left, &right, &pairs, &out);
@@ -350,12 +362,14 @@ impl Pipeline {
         shaken: &Shaken,
         out: &mut FrameOutput,
     ) {
+        let refined = self.refine_found(frame, (left, right), predictions, shaken, out);
         let found: Vec<_> = shaken
             .found
             .iter()
-            .filter_map(|f| {
+            .zip(refined)
+            .filter_map(|(f, refined)| {
                 let (sample, point) =
-                    self.sample_of(frame, seq, left, right, (f.left, f.right), out)?;
+                    self.sample_of(frame, seq, left, right, (f.left, f.right), refined, out)?;
                 Some((predictions[f.prediction].key, sample, f.miss_px, point))
             })
             .collect();
@@ -366,6 +380,87 @@ impl Pipeline {
         out.continued_right = right.continued(out.detections_right.len(), &shaken.claimed_right);
         out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();
         out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
+    }
+
+    /// The found particles measured in both images (`shake::refine::measure`): per found
+    /// particle and camera, the rectified centre refitted where its image overlapped a
+    /// neighbour's, and the shapes its track learnt.
+    fn refine_found(
+        &mut self,
+        frame: &StereoFrame<'_>,
+        (left, right): (&CameraOutput, &CameraOutput),
+        predictions: &[Prediction],
+        shaken: &Shaken,
+        out: &FrameOutput,
+    ) -> Vec<[Option<RectPoint>; 2]> {
+        let keys: Vec<u64> = shaken
+            .found
+            .iter()
+            .map(|f| predictions[f.prediction].key)
+            .collect();
+        let mut shapes: Vec<[Option<Shape>; 2]> =
+            keys.iter().map(|&k| self.tracks.shapes(k)).collect();
+        let relearn: Vec<bool> = keys
+            .iter()
+            .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
+            .collect();
+        let rect = &self.rectification;
+        let mut refined = vec![[None; 2]; keys.len()];
+        let cameras = [
+            (frame.left, left, &out.detections_left),
+            (frame.right, right, &out.detections_right),
+        ];
+        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
+            let seen: Vec<refine::Seen> = camera
+                .linked
+                .iter()
+                .zip(&camera.detection_of)
+                .map(|(feature, &d)| {
+                    let d = &detections[d];
+                    refine::Seen {
+                        centroid: d.centroid,
+                        diameter_px: d.diameter_px,
+                        clear: d.separation == Separation::Clear,
+                        rect: feature.feature.rect,
+                    }
+                })
+                .collect();
+            let found: Vec<refine::FoundIn> = shaken
+                .found
+                .iter()
+                .zip(&relearn)
+                .map(|(f, &relearn)| {
+                    let p = &predictions[f.prediction];
+                    let (detection, predicted) = if c == 0 {
+                        (f.left, rect.rect_to_left(p.left))
+                    } else {
+                        (f.right, rect.rect_to_right(p.right))
+                    };
+                    refine::FoundIn {
+                        detection,
+                        predicted_px: predicted.unwrap_or(seen[detection].centroid),
+                        relearn,
+                    }
+                })
+                .collect();
+            let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
+            let other: Vec<Option<Shape>> = shapes.iter().map(|s| s[1 - c]).collect();
+            let centres = self.shake[c].measure(image, &seen, &found, &mut own, &other);
+            for (k, (centre, shape)) in centres.into_iter().zip(own).enumerate() {
+                shapes[k][c] = shape;
+                refined[k][c] = centre.and_then(|p| {
+                    if c == 0 {
+                        rect.left_to_rect(p)
+                    } else {
+                        rect.right_to_rect(p)
+                    }
+                });
+            }
+        }
+        for (&k, s) in keys.iter().zip(shapes) {
+            self.tracks.set_shapes(k, s);
+        }
+        refined
     }
 
     /// The pairs triangulated, in the world frame (the rig's without a pose); pairs the
@@ -382,7 +477,8 @@ impl Pipeline {
         pairs
             .iter()
             .filter_map(|&(li, ri)| {
-                let (sample, point) = self.sample_of(frame, seq, left, right, (li, ri), out)?;
+                let (sample, point) =
+                    self.sample_of(frame, seq, left, right, (li, ri), [None; 2], out)?;
                 Some(Pair {
                     left_track: left.linked[li].track_id,
                     right_track: right.linked[ri].track_id,
@@ -393,8 +489,10 @@ impl Pipeline {
             .collect()
     }
 
-    /// The sample and the point of a left and a right feature (by index) seen as one particle;
-    /// `None` where the rectified geometry cannot triangulate them.
+    /// The sample and the point of a left and a right feature (by index) seen as one particle,
+    /// at the `refined` rectified centres where there are any (a refitted centre counts as
+    /// [`Separation::Fitted`]); `None` where the rectified geometry cannot triangulate them.
+    #[allow(clippy::too_many_arguments)]
     fn sample_of(
         &self,
         frame: &StereoFrame<'_>,
@@ -402,25 +500,31 @@ impl Pipeline {
         left: &CameraOutput,
         right: &CameraOutput,
         (li, ri): (usize, usize),
+        refined: [Option<RectPoint>; 2],
         out: &FrameOutput,
     ) -> Option<(Sample, MatchedPoint)> {
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
         let (l, r) = (&left.linked[li], &right.linked[ri]);
-        let t = self
-            .rectification
-            .triangulate(l.feature.rect, r.feature.rect)?;
+        let (rect_l, rect_r) = (
+            refined[0].unwrap_or(l.feature.rect),
+            refined[1].unwrap_or(r.feature.rect),
+        );
+        let t = self.rectification.triangulate(rect_l, rect_r)?;
         let (dl, dr): (&Detection, &Detection) = (
             &out.detections_left[left.detection_of[li]],
             &out.detections_right[right.detection_of[ri]],
         );
+        let separation = |d: &Detection, refined: Option<RectPoint>| {
+            refined.map_or(d.separation, |_| Separation::Fitted)
+        };
         let sample = Sample {
             seq,
             frame_index: frame.index,
             t_s: frame.t_s,
             point_in_world: world_from_rig * t.point_in_rig,
             depth_m: t.depth_m,
-            separation: dl.separation.max(dr.separation),
-            left_rect: l.feature.rect,
+            separation: separation(dl, refined[0]).max(separation(dr, refined[1])),
+            left_rect: rect_l,
             camera_in_world: world_from_rig * Point3::origin(),
         };
         let point = MatchedPoint {

@@ -14,6 +14,7 @@ use crate::detect::Separation;
 use crate::geometry::{RectPoint, Rectification};
 use crate::pipeline::{MatchedPoint, PipelineConfig};
 use crate::predict::Predictor;
+use crate::shake::refine::Shape;
 
 mod rejoin;
 
@@ -110,6 +111,9 @@ pub(crate) struct Track3d {
     pub(crate) samples: VecDeque<Sample>,
     /// How well it predicts itself (track-first).
     pub(crate) predictor: Predictor,
+    /// Its particle's image shape in the left and right cameras, learnt where it stood alone
+    /// (track-first).
+    pub(crate) shapes: [Option<Shape>; 2],
 }
 
 impl Track3d {
@@ -205,6 +209,26 @@ impl Tracks {
     /// The live tracks, by key, to be predicted.
     pub(crate) fn live_mut(&mut self) -> impl Iterator<Item = (u64, &mut Track3d)> {
         self.live.iter_mut().map(|(k, t)| (*k, t))
+    }
+
+    /// The particle image shapes the live track under `key` has learnt (none for another key).
+    pub(crate) fn shapes(&self, key: u64) -> [Option<Shape>; 2] {
+        self.live.get(&key).map_or([None; 2], |t| t.shapes)
+    }
+
+    /// Whether the live track under `key` should learn its shapes again: every
+    /// `every` samples, so a particle that changes depth keeps its shape.
+    pub(crate) fn relearns(&self, key: u64, every: usize) -> bool {
+        self.live
+            .get(&key)
+            .is_some_and(|t| t.samples.len() % every == 0)
+    }
+
+    /// Sets the shapes of the live track under `key`.
+    pub(crate) fn set_shapes(&mut self, key: u64, shapes: [Option<Shape>; 2]) {
+        if let Some(t) = self.live.get_mut(&key) {
+            t.shapes = shapes;
+        }
     }
 
     /// Frames a live track may go unseen and still be continued.
@@ -347,6 +371,7 @@ impl Tracks {
                         right_track: birth.right_track,
                         samples: VecDeque::new(),
                         predictor: Predictor::default(),
+                        shapes: [None; 2],
                     }
                 }
             };

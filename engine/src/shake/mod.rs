@@ -1,12 +1,17 @@
 //! Track-first step 2: each predicted particle is looked for in both images at once. Its
 //! detections are the left and right features nearest its two projections, within its gate,
 //! settled for all tracks together (globally cheapest first, each feature used once): the two
-//! image positions are consistent by construction, so no epipolar band and no pair choice is
-//! needed. Touching images were already parted by fits seeded at the predictions
-//! ([`crate::Detector::separate_expected`]).
+//! projections are consistent by construction, so no pair has to be chosen among epipolar
+//! candidates; the two features must still lie on rows within the epipolar band of each other
+//! (a track that drifted onto two different particles is not found). Touching images were
+//! already parted by fits seeded at the predictions
+//! ([`crate::Detector::separate_expected`]); [`refine`] measures the found particles whose
+//! images still overlap with the shapes their tracks learnt.
 //!
 //! A track found in one image only claims that detection (it is explained, and must not pair
 //! with another particle's) and coasts; a track found in neither coasts.
+
+pub(crate) mod refine;
 
 use crate::link::LinkedFeature;
 use crate::predict::Prediction;
@@ -37,11 +42,14 @@ pub(crate) struct Shaken {
     pub(crate) claimed_right: Vec<bool>,
 }
 
-/// Looks for every prediction among the left and right features (fixtures never count).
+/// Looks for every prediction among the left and right features (fixtures never count); a
+/// left and a right feature are one particle only on rows within `band_px` of each other, as
+/// for a stereo pair.
 pub(crate) fn find(
     predictions: &[Prediction],
     left: &[LinkedFeature],
     right: &[LinkedFeature],
+    band_px: f64,
 ) -> Shaken {
     if predictions.is_empty() {
         return Shaken {
@@ -55,8 +63,11 @@ pub(crate) fn find(
     let mut both: Vec<(f64, usize, usize, usize)> = Vec::new();
     for (i, (ls, rs)) in left_near.iter().zip(&right_near).enumerate() {
         for &(dl, l) in ls {
+            let row = left[l].feature.rect.y;
             for &(dr, r) in rs {
-                both.push((dl + dr, i, l, r));
+                if (right[r].feature.rect.y - row).abs() <= band_px {
+                    both.push((dl + dr, i, l, r));
+                }
             }
         }
     }
@@ -173,7 +184,7 @@ mod tests {
         let predictions = [prediction(1, 10.0, 0.0, 5.0), prediction(2, 10.5, 6.0, 5.0)];
         let left = [feature(10.1, 5.0)];
         let right = [feature(0.2, 5.1), feature(6.0, 5.0), feature(30.0, 5.0)];
-        let s = find(&predictions, &left, &right);
+        let s = find(&predictions, &left, &right, 2.0);
         assert_eq!(s.found.len(), 1);
         assert_eq!(
             (s.found[0].prediction, s.found[0].left, s.found[0].right),
@@ -197,9 +208,19 @@ mod tests {
             &predictions,
             &[fixture, feature(13.0, 5.0)],
             &[feature(0.0, 5.0)],
+            2.0,
         );
         assert!(s.found.is_empty());
         assert_eq!(s.claimed_left, [false, false]);
         assert_eq!(s.claimed_right, [true]);
+    }
+
+    #[test]
+    fn a_left_and_a_right_feature_on_rows_apart_are_not_one_particle() {
+        let mut p = prediction(1, 10.0, 0.0, 5.0);
+        p.gate_px = 3.0;
+        let (left, right) = ([feature(10.0, 4.0)], [feature(0.0, 6.5)]);
+        assert!(find(&[p], &left, &right, 2.0).found.is_empty());
+        assert_eq!(find(&[p], &left, &right, 3.0).found.len(), 1);
     }
 }
