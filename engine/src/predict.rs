@@ -19,16 +19,16 @@ use crate::velocity::fit::{fit_line, fit_quadratic};
 /// it. A prediction keeps finding what resembles its particle, so a track adopted too young
 /// may be a ghost pair the chain would have dropped: in dense seeding a few of those last five
 /// frames, almost none eight.
-pub(crate) const MIN_SAMPLES: usize = 8;
+const MIN_SAMPLES: usize = 8;
 /// Samples the line is fitted to: enough to average centroid noise, few enough to turn.
 const LINE_SAMPLES: usize = 4;
 /// Samples the quadratic is fitted to.
 const QUADRATIC_SAMPLES: usize = 6;
 /// A found particle lies within this many of its track's miss sigmas of the prediction.
-pub(crate) const GATE_SIGMAS: f64 = 4.0;
+const GATE_SIGMAS: f64 = 4.0;
 /// No search radius is narrower: two particle images whose centres are closer than a pixel
 /// are one detection, so a narrower gate would only lose particles to centroid noise.
-pub(crate) const MIN_GATE_PX: f64 = 1.0;
+const MIN_GATE_PX: f64 = 1.0;
 /// Weight of the newest miss in a track's running means.
 const MISS_WEIGHT: f64 = 0.3;
 

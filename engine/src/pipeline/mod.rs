@@ -295,15 +295,17 @@ impl Pipeline {
             .iter()
             .filter(|c| c.detector.last_contrast_c() < self.config.detect.contrast_c)
             .count();
-        self.image_radius_px =
-            median_radius_px(&out.detections_left).unwrap_or(self.image_radius_px);
+        if self.config.tracks.track_first {
+            self.image_radius_px =
+                median_radius_px(&out.detections_left).unwrap_or(self.image_radius_px);
+        }
         (left, right)
     }
 
     /// Stereo pairs `(left, right)` of the linked features no prediction claimed, matched in
-    /// the search learnt from the tracks where there is one. Fixtures (features that have not moved for a while) never
-    /// enter: a static light in the room would otherwise become a 3D point with a velocity of
-    /// zero.
+    /// the search learnt from the tracks where there is one. Fixtures (features that have not
+    /// moved for a while) never enter: a static light in the room would otherwise become a 3D
+    /// point with a velocity of zero.
     fn match_pairs(
         &mut self,
         left: &CameraOutput,
@@ -393,6 +395,9 @@ impl Pipeline {
         shaken: &Shaken,
         out: &FrameOutput,
     ) -> Vec<[Option<RectPoint>; 2]> {
+        if shaken.found.is_empty() {
+            return Vec::new();
+        }
         let keys: Vec<u64> = shaken
             .found
             .iter()
@@ -786,10 +791,7 @@ mod tests {
             first.2,
             100.0 * rms(&first.0)
         );
-        assert!(
-            first.0.len() * 100 >= chain.0.len() * 98,
-            "no fewer vectors"
-        );
+        assert!(first.0.len() >= chain.0.len(), "no fewer vectors");
         assert!(first.2 * 100 <= chain.2 * 105, "hardly more broken tracks");
         assert!(rms(&first.0) <= 1.1 * rms(&chain.0), "no less accurate");
     }

@@ -52,8 +52,8 @@ impl Shape {
     }
 }
 
-/// A particle in a fit: its centre and shape; whether the fit may change the shape's radius
-/// and edge (learning) or only its centre and amplitude (measuring).
+/// A particle in a fit: its centre and shape (a fit that learns may change the shape's radius
+/// and edge; one that measures only its centre and amplitude).
 #[derive(Debug, Clone, Copy)]
 struct Member {
     at: PixelPoint,
