@@ -10,10 +10,10 @@ use nalgebra::{Isometry3, Point3};
 
 use crate::config::ConfigError;
 use crate::detect::{Detection, Separation};
-use crate::geometry::{CalibrationError, RectPoint, Rectification, StereoRig};
+use crate::geometry::{CalibrationError, PixelPoint, RectPoint, Rectification, StereoRig};
 use crate::link::{CostScale, LinkedFeature};
 use crate::predict::{self, Prediction};
-use crate::shake::refine::{self, CameraShake, Shape};
+use crate::shake::refine::CameraShake;
 use crate::shake::{self, Shaken};
 use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoSearch};
 use crate::tracks::{Pair, Sample, Tracks};
@@ -22,6 +22,7 @@ use crate::{ImageView, StereoFrame};
 
 mod camera;
 mod config;
+mod found;
 mod output;
 
 use camera::{Camera, CameraOutput};
@@ -178,12 +179,23 @@ impl Pipeline {
             .unwrap_or(self.stereo_search)
             .epipolar_band_px;
         let shaken = shake::find(&predictions, &left.linked, &right.linked, band_px);
-        self.take_found(frame, seq, (&left, &right), &predictions, &shaken, &mut out);
-        let pairs = self.match_pairs(&left, &right, &shaken, &mut out.stats);
-        let pairs = self.triangulate(frame, seq, &left, &right, &pairs, &out);
+        self.take_found(
+            frame,
+            seq,
+            (&left, &right),
+            &predictions,
+            &shaken,
+            band_px,
+            &mut out,
+        );
+        let paired = self.match_pairs(&left, &right, &shaken, &mut out.stats);
+        let pairs = self.triangulate(frame, seq, &left, &right, &paired, &out);
         out.stats.rejoined =
             self.tracks
                 .update(seq, frame.t_s, pairs, &self.rectification, &mut out.points);
+        if self.config.tracks.track_first {
+            self.learn_young_shapes(frame, (&left, &right), &paired, &out);
+        }
         if let Some(learner) = &mut self.depth_learner {
             learner.add(seq, self.tracks.confirmed_depths(seq, CONFIRMED_SAMPLES));
         }
@@ -353,121 +365,6 @@ impl Pipeline {
         )
     }
 
-    /// Continues the tracks whose predictions were found in both images, and marks every
-    /// claimed detection as continuing a track.
-    fn take_found(
-        &mut self,
-        frame: &StereoFrame<'_>,
-        seq: u64,
-        (left, right): (&CameraOutput, &CameraOutput),
-        predictions: &[Prediction],
-        shaken: &Shaken,
-        out: &mut FrameOutput,
-    ) {
-        let refined = self.refine_found(frame, (left, right), predictions, shaken, out);
-        let found: Vec<_> = shaken
-            .found
-            .iter()
-            .zip(refined)
-            .filter_map(|(f, refined)| {
-                let (sample, point) =
-                    self.sample_of(frame, seq, left, right, (f.left, f.right), refined, out)?;
-                Some((predictions[f.prediction].key, sample, f.miss_px, point))
-            })
-            .collect();
-        out.stats.predicted = predictions.len();
-        out.stats.found = found.len();
-        self.tracks.take_found(found, &mut out.points);
-        out.continued_left = left.continued(out.detections_left.len(), &shaken.claimed_left);
-        out.continued_right = right.continued(out.detections_right.len(), &shaken.claimed_right);
-        out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();
-        out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
-    }
-
-    /// The found particles measured in both images (`shake::refine::measure`): per found
-    /// particle and camera, the rectified centre refitted where its image overlapped a
-    /// neighbour's, and the shapes its track learnt.
-    fn refine_found(
-        &mut self,
-        frame: &StereoFrame<'_>,
-        (left, right): (&CameraOutput, &CameraOutput),
-        predictions: &[Prediction],
-        shaken: &Shaken,
-        out: &FrameOutput,
-    ) -> Vec<[Option<RectPoint>; 2]> {
-        if shaken.found.is_empty() {
-            return Vec::new();
-        }
-        let keys: Vec<u64> = shaken
-            .found
-            .iter()
-            .map(|f| predictions[f.prediction].key)
-            .collect();
-        let mut shapes: Vec<[Option<Shape>; 2]> =
-            keys.iter().map(|&k| self.tracks.shapes(k)).collect();
-        let relearn: Vec<bool> = keys
-            .iter()
-            .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
-            .collect();
-        let rect = &self.rectification;
-        let mut refined = vec![[None; 2]; keys.len()];
-        let cameras = [
-            (frame.left, left, &out.detections_left),
-            (frame.right, right, &out.detections_right),
-        ];
-        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
-            let seen: Vec<refine::Seen> = camera
-                .linked
-                .iter()
-                .zip(&camera.detection_of)
-                .map(|(feature, &d)| {
-                    let d = &detections[d];
-                    refine::Seen {
-                        centroid: d.centroid,
-                        diameter_px: d.diameter_px,
-                        clear: d.separation == Separation::Clear,
-                        rect: feature.feature.rect,
-                    }
-                })
-                .collect();
-            let found: Vec<refine::FoundIn> = shaken
-                .found
-                .iter()
-                .zip(&relearn)
-                .map(|(f, &relearn)| {
-                    let p = &predictions[f.prediction];
-                    let (detection, predicted) = if c == 0 {
-                        (f.left, rect.rect_to_left(p.left))
-                    } else {
-                        (f.right, rect.rect_to_right(p.right))
-                    };
-                    refine::FoundIn {
-                        detection,
-                        predicted_px: predicted.unwrap_or(seen[detection].centroid),
-                        relearn,
-                    }
-                })
-                .collect();
-            let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
-            let other: Vec<Option<Shape>> = shapes.iter().map(|s| s[1 - c]).collect();
-            let centres = self.shake[c].measure(image, &seen, &found, &mut own, &other);
-            for (k, (centre, shape)) in centres.into_iter().zip(own).enumerate() {
-                shapes[k][c] = shape;
-                refined[k][c] = centre.and_then(|p| {
-                    if c == 0 {
-                        rect.left_to_rect(p)
-                    } else {
-                        rect.right_to_rect(p)
-                    }
-                });
-            }
-        }
-        for (&k, s) in keys.iter().zip(shapes) {
-            self.tracks.set_shapes(k, s);
-        }
-        refined
-    }
-
     /// The pairs triangulated, in the world frame (the rig's without a pose); pairs the
     /// rectified geometry cannot triangulate are left out.
     fn triangulate(
@@ -482,8 +379,8 @@ impl Pipeline {
         pairs
             .iter()
             .filter_map(|&(li, ri)| {
-                let (sample, point) =
-                    self.sample_of(frame, seq, left, right, (li, ri), [None; 2], out)?;
+                let spots = Self::spots_of(left, right, (li, ri), out);
+                let (sample, point) = self.sample_at(frame, seq, spots)?;
                 Some(Pair {
                     left_track: left.linked[li].track_id,
                     right_track: right.linked[ri].track_id,
@@ -494,53 +391,67 @@ impl Pipeline {
             .collect()
     }
 
-    /// The sample and the point of a left and a right feature (by index) seen as one particle,
-    /// at the `refined` rectified centres where there are any (a refitted centre counts as
-    /// [`Separation::Fitted`]); `None` where the rectified geometry cannot triangulate them.
-    #[allow(clippy::too_many_arguments)]
-    fn sample_of(
-        &self,
-        frame: &StereoFrame<'_>,
-        seq: u64,
+    /// Where a left and a right feature (by index) are seen, as detected.
+    fn spots_of(
         left: &CameraOutput,
         right: &CameraOutput,
         (li, ri): (usize, usize),
-        refined: [Option<RectPoint>; 2],
         out: &FrameOutput,
+    ) -> [Spot; 2] {
+        let spot = |camera: &CameraOutput, i: usize, detections: &[Detection]| {
+            let d = &detections[camera.detection_of[i]];
+            Spot {
+                rect: camera.linked[i].feature.rect,
+                px: d.centroid,
+                separation: d.separation,
+            }
+        };
+        [
+            spot(left, li, &out.detections_left),
+            spot(right, ri, &out.detections_right),
+        ]
+    }
+
+    /// The sample and the point of a particle seen at `spots` in the two images; `None` where
+    /// the rectified geometry cannot triangulate them.
+    fn sample_at(
+        &self,
+        frame: &StereoFrame<'_>,
+        seq: u64,
+        [l, r]: [Spot; 2],
     ) -> Option<(Sample, MatchedPoint)> {
         let world_from_rig = frame.world_from_rig.unwrap_or_else(Isometry3::identity);
-        let (l, r) = (&left.linked[li], &right.linked[ri]);
-        let (rect_l, rect_r) = (
-            refined[0].unwrap_or(l.feature.rect),
-            refined[1].unwrap_or(r.feature.rect),
-        );
-        let t = self.rectification.triangulate(rect_l, rect_r)?;
-        let (dl, dr): (&Detection, &Detection) = (
-            &out.detections_left[left.detection_of[li]],
-            &out.detections_right[right.detection_of[ri]],
-        );
-        let separation = |d: &Detection, refined: Option<RectPoint>| {
-            refined.map_or(d.separation, |_| Separation::Fitted)
-        };
+        let t = self.rectification.triangulate(l.rect, r.rect)?;
         let sample = Sample {
             seq,
             frame_index: frame.index,
             t_s: frame.t_s,
             point_in_world: world_from_rig * t.point_in_rig,
             depth_m: t.depth_m,
-            separation: separation(dl, refined[0]).max(separation(dr, refined[1])),
-            left_rect: rect_l,
+            separation: l.separation.max(r.separation),
+            left_rect: l.rect,
             camera_in_world: world_from_rig * Point3::origin(),
         };
         let point = MatchedPoint {
             track_id: 0,
             point_in_world: sample.point_in_world,
-            left_px: dl.centroid,
-            right_px: dr.centroid,
+            left_px: l.px,
+            right_px: r.px,
             depth_m: t.depth_m,
         };
         Some((sample, point))
     }
+}
+
+/// Where a particle is seen in one image.
+#[derive(Debug, Clone, Copy)]
+struct Spot {
+    /// Its centre, rectified.
+    rect: RectPoint,
+    /// The detection's centroid, or the fitted centre where it has no detection, raw pixels.
+    px: PixelPoint,
+    /// How it was told apart from its neighbours.
+    separation: Separation,
 }
 
 /// The normalisation of the cost terms: half the rectified image's size.

@@ -40,6 +40,9 @@ pub(crate) struct Shaken {
     pub(crate) claimed_left: Vec<bool>,
     /// Per right feature, whether a prediction claimed it.
     pub(crate) claimed_right: Vec<bool>,
+    /// Every prediction not found in both images, with the feature it claimed in each
+    /// (left, right), if any: [`refine`] looks for it in the images themselves.
+    pub(crate) partial: Vec<(usize, [Option<usize>; 2])>,
 }
 
 /// Looks for every prediction among the left and right features (fixtures never count); a
@@ -53,9 +56,9 @@ pub(crate) fn find(
 ) -> Shaken {
     if predictions.is_empty() {
         return Shaken {
-            found: Vec::new(),
             claimed_left: vec![false; left.len()],
             claimed_right: vec![false; right.len()],
+            ..Default::default()
         };
     }
     let left_near = near_each(predictions, left, |p| p.left);
@@ -77,9 +80,9 @@ pub(crate) fn find(
     });
     let mut done = vec![false; predictions.len()];
     let mut shaken = Shaken {
-        found: Vec::new(),
         claimed_left: vec![false; left.len()],
         claimed_right: vec![false; right.len()],
+        ..Default::default()
     };
     for (cost, i, l, r) in both {
         if done[i] || shaken.claimed_left[l] || shaken.claimed_right[r] {
@@ -96,8 +99,12 @@ pub(crate) fn find(
             miss_px,
         });
     }
-    claim_single(&left_near, &done, &mut shaken.claimed_left);
-    claim_single(&right_near, &done, &mut shaken.claimed_right);
+    let left_single = claim_single(&left_near, &done, &mut shaken.claimed_left);
+    let right_single = claim_single(&right_near, &done, &mut shaken.claimed_right);
+    shaken.partial = (0..predictions.len())
+        .filter(|&i| !done[i])
+        .map(|i| (i, [left_single[i], right_single[i]]))
+        .collect();
     shaken.found.sort_by_key(|f| f.prediction);
     shaken
 }
@@ -130,8 +137,13 @@ fn near_each(
         .collect()
 }
 
-/// Predictions found in one image only claim their nearest free feature there.
-fn claim_single(near: &[Vec<(f64, usize)>], done: &[bool], claimed: &mut [bool]) {
+/// Predictions found in one image only claim their nearest free feature there: per
+/// prediction, the feature it claimed.
+fn claim_single(
+    near: &[Vec<(f64, usize)>],
+    done: &[bool],
+    claimed: &mut [bool],
+) -> Vec<Option<usize>> {
     let mut single: Vec<(f64, usize, usize)> = near
         .iter()
         .enumerate()
@@ -139,13 +151,14 @@ fn claim_single(near: &[Vec<(f64, usize)>], done: &[bool], claimed: &mut [bool])
         .flat_map(|(i, fs)| fs.iter().map(move |&(d, f)| (d, i, f)))
         .collect();
     single.sort_by(|a, b| a.0.total_cmp(&b.0).then((a.1, a.2).cmp(&(b.1, b.2))));
-    let mut taken = vec![false; near.len()];
+    let mut taken = vec![None; near.len()];
     for (_, i, f) in single {
-        if !taken[i] && !claimed[f] {
-            taken[i] = true;
+        if taken[i].is_none() && !claimed[f] {
+            taken[i] = Some(f);
             claimed[f] = true;
         }
     }
+    taken
 }
 
 #[cfg(test)]
@@ -197,6 +210,7 @@ mod tests {
             [true, true, false],
             "the second track's own detection"
         );
+        assert_eq!(s.partial, [(1, [None, Some(1)])]);
     }
 
     #[test]

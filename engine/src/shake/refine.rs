@@ -33,6 +33,9 @@ pub(crate) struct Shape {
     pub(crate) edge_px: f64,
     /// The height above the background, grey levels.
     pub(crate) amplitude: f64,
+    /// Whether it was guessed from a detection's size rather than learnt from its pixels (a
+    /// particle that never stood alone); a guessed shape is learnt as soon as it can be.
+    pub(crate) guessed: bool,
 }
 
 impl Shape {
@@ -83,6 +86,7 @@ pub(crate) fn learn_shape(
             radius_px,
             edge_px: 0.5,
             amplitude: peak.max(1.0),
+            guessed: false,
         },
     };
     let fitted = fit(&samples, &[seed], true)?;
@@ -95,19 +99,29 @@ pub(crate) fn learn_shape(
 }
 
 /// Refits a group of overlapping particles, each seeded at `at` with the shape its track
-/// learnt (only centres and amplitudes free): the fitted centres, in order, and the RMS
-/// residual; `None` where the fit fails or moves a centre further than its radius.
-fn refit(image: ImageView<'_>, seeds: &[Member]) -> Option<(Vec<PixelPoint>, f64)> {
+/// learnt (only centres and amplitudes free): the members as fitted, in order, and the RMS
+/// residual; `None` where the fit fails.
+fn refit(image: ImageView<'_>, seeds: &[Member]) -> Option<Fitted> {
     let reach: Vec<(PixelPoint, f64)> = seeds
         .iter()
         .map(|m| (m.at, m.shape.radius_px + MARGIN_PX))
         .collect();
     let samples = window(image, &reach);
-    let fitted = fit(&samples, seeds, false)?;
-    let stayed = fitted.members.iter().zip(seeds).all(|(f, s)| {
-        f.shape.amplitude > 0.0 && (f.at.x - s.at.x).hypot(f.at.y - s.at.y) <= s.shape.radius_px
-    });
-    stayed.then(|| (fitted.members.iter().map(|m| m.at).collect(), fitted.rms))
+    fit(&samples, seeds, false)
+}
+
+/// Whether every member of a group fit stayed within its radius of where it was seeded, but
+/// those that `may_vanish` (particles without a detection of their own, which may not be
+/// there: the fit is free to move them off).
+fn stayed(fitted: &Fitted, seeds: &[Member], may_vanish: impl Fn(usize) -> bool) -> bool {
+    fitted
+        .members
+        .iter()
+        .zip(seeds)
+        .enumerate()
+        .all(|(k, (f, s))| {
+            may_vanish(k) || (f.at.x - s.at.x).hypot(f.at.y - s.at.y) <= s.shape.radius_px
+        })
 }
 
 /// Gauss-Newton on a floor plus the members' discs; with `free_shape`, radius and edge are
@@ -163,37 +177,44 @@ fn normal_equations(
     let n = 1 + per * members.len();
     let mut jtj = DMatrix::zeros(n, n);
     let mut jtr = DVector::zeros(n);
-    let mut row = DVector::zeros(n);
+    // Each pixel's Jacobian row is nonzero only for the floor and the members that reach it.
+    let mut row: Vec<(usize, f64)> = Vec::with_capacity(n);
     let mut cost = 0.0;
     for &(x, y, value) in samples {
-        row.fill(0.0);
-        row[0] = 1.0;
+        row.clear();
+        row.push((0, 1.0));
         let mut model = floor;
         for (k, m) in members.iter().enumerate() {
             let (dx, dy) = (x - m.at.x, y - m.at.y);
-            let r = dx.hypot(dy);
-            if r > m.shape.reach_px() + MARGIN_PX {
+            let reach = m.shape.reach_px() + MARGIN_PX;
+            let r_sq = dx * dx + dy * dy;
+            if r_sq > reach * reach {
                 continue;
             }
+            let r = r_sq.sqrt();
             let (g, dg_dr, dg_dradius, dg_dedge) = m.shape.profile(r);
             let a = m.shape.amplitude;
             model += a * g;
             let j = 1 + per * k;
             if r > 1e-9 {
                 // r grows as the centre moves away from the pixel.
-                row[j] = -a * dg_dr * dx / r;
-                row[j + 1] = -a * dg_dr * dy / r;
+                row.push((j, -a * dg_dr * dx / r));
+                row.push((j + 1, -a * dg_dr * dy / r));
             }
-            row[j + 2] = g;
+            row.push((j + 2, g));
             if free_shape {
-                row[j + 3] = a * dg_dradius;
-                row[j + 4] = a * dg_dedge;
+                row.push((j + 3, a * dg_dradius));
+                row.push((j + 4, a * dg_dedge));
             }
         }
         let residual = value - model;
         cost += residual * residual;
-        jtj.ger(1.0, &row, &row, 1.0);
-        jtr.axpy(residual, &row, 1.0);
+        for &(i, vi) in &row {
+            jtr[i] += residual * vi;
+            for &(j, vj) in &row {
+                jtj[(i, j)] += vi * vj;
+            }
+        }
     }
     // Levenberg's touch of damping keeps a group whose members nearly coincide solvable.
     for i in 0..n {
@@ -245,14 +266,28 @@ pub(crate) struct Seen {
     pub(crate) rect: RectPoint,
 }
 
-/// A found particle in one camera: its detection (an index into the camera's [`Seen`]s),
-/// where its track predicted it (raw pixels), and whether its track should learn its shape
-/// again.
+/// A predicted particle in one camera: the detection its track claimed there (an index into
+/// the camera's [`Seen`]s), if any, where its track predicted it (raw and rectified pixels),
+/// and whether its track should learn its shape again.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct FoundIn {
-    pub(crate) detection: usize,
-    pub(crate) predicted_px: PixelPoint,
+pub(crate) struct Wanted {
+    pub(crate) detection: Option<usize>,
+    pub(crate) predicted_px: Option<PixelPoint>,
+    pub(crate) predicted_rect: RectPoint,
+    /// Its predicted disparity, rectified pixels: its image's size scales with it.
+    pub(crate) disparity_px: f64,
     pub(crate) relearn: bool,
+}
+
+/// What one camera's shake made of a predicted particle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Measured {
+    /// Its detection stands as detected (clear, or no fit explained its overlap).
+    AsDetected,
+    /// Fitted among its neighbours with the shapes their tracks learnt: its centre, raw pixels.
+    Refitted(PixelPoint),
+    /// Not in this image: no detection of its own, and no particle where its track put it.
+    Missing,
 }
 
 /// What one camera's shake learns across frames: the RMS residual its lone particles' fits
@@ -262,26 +297,88 @@ pub(crate) struct FoundIn {
 pub(crate) struct CameraShake {
     lone_rms: Option<f64>,
     edge_px: Option<f64>,
+    /// A learnt disc radius over half the detection's equivalent diameter: how a clear
+    /// detection's size (measured at the threshold) maps to the disc's half-height radius.
+    radius_per_half_diameter: Option<f64>,
+    /// A learnt disc radius over the particle's disparity, rectified pixels.
+    radius_per_disparity: Option<f64>,
+}
+
+/// One camera's particles as fit members: per detection, the track's member that claimed it
+/// (with whether the detection is clear); per wanted particle without a detection, its member
+/// at its prediction.
+struct Members {
+    claimed: Vec<Option<(Member, bool)>>,
+    hidden: Vec<Option<Member>>,
 }
 
 impl CameraShake {
-    /// One camera's found particles measured: each one standing alone (clear, and no other
-    /// detection within reach) teaches its track's shape (where the track has none, or
-    /// `relearn` says so); each overlapped one whose track knows its shape is refitted with
-    /// the detections around it, each seeded where its track puts it (a lone one at its
-    /// centroid, an overlapped one at its prediction; one no track knows at its centroid, as
-    /// a disc of its diameter). A track that has not learnt its shape in this camera borrows
-    /// the one it learnt in the other (`other_camera`): the two see the particle from nearly
-    /// the same distance. Returns, per found particle, the refitted centre, raw pixels,
-    /// where its detection overlapped and the group fit explained the pixels.
+    /// One camera's predicted particles measured. Each one standing alone (clear, and no
+    /// other detection within reach) teaches its track's shape (where the track has none, or
+    /// `relearn` says so). Each one whose track knows its shape is fitted among its
+    /// neighbours where its image may overlap another (its detection was not clear, or a
+    /// hidden particle is near) or where it has no detection of its own: every neighbour
+    /// seeded where its track puts it (a clear detection at its centroid, another at its
+    /// prediction; a detection no track knows at its centroid, as a disc of its size), shapes
+    /// held, centres and amplitudes free. A track that has not learnt its shape in this camera
+    /// borrows the one it learnt in the other (`other_camera`): the two see the particle from
+    /// nearly the same distance.
     pub(crate) fn measure(
         &mut self,
         image: ImageView<'_>,
         seen: &[Seen],
-        found: &[FoundIn],
+        wanted: &[Wanted],
         shapes: &mut [Option<Shape>],
         other_camera: &[Option<Shape>],
-    ) -> Vec<Option<PixelPoint>> {
+    ) -> Vec<Measured> {
+        self.learn_shapes(image, seen, wanted, shapes);
+        let grid = PointGrid::new(
+            seen.iter().enumerate().map(|(i, s)| (s.rect, i)),
+            GRID_CELL_PX,
+        );
+        let widest = seen.iter().map(|s| s.diameter_px).fold(0.0, f64::max);
+        let unmeasured = |w: &Wanted| {
+            w.detection
+                .map_or(Measured::Missing, |_| Measured::AsDetected)
+        };
+        let (Some(lone_rms), Some(edge_px)) = (self.lone_rms, self.edge_px) else {
+            return wanted.iter().map(unmeasured).collect();
+        };
+        let members = members_of(seen, wanted, shapes, other_camera);
+        let hidden_grid = PointGrid::new(
+            wanted
+                .iter()
+                .enumerate()
+                .filter(|(k, _)| members.hidden[*k].is_some())
+                .map(|(k, w)| (w.predicted_rect, k)),
+            GRID_CELL_PX,
+        );
+        let group = Group {
+            image,
+            seen,
+            wanted,
+            members: &members,
+            grid: &grid,
+            hidden_grid: &hidden_grid,
+            widest,
+            edge_px,
+            max_rms: MAX_RESIDUAL_RATIO * lone_rms,
+        };
+        (0..wanted.len())
+            .map(|k| group.measure(k).unwrap_or_else(|| unmeasured(&wanted[k])))
+            .collect()
+    }
+
+    /// The wanted particles' tracks learn their shapes: each one whose detection stands alone
+    /// (clear, and no other detection within reach) from its pixels, where its track has no
+    /// learnt shape or `relearn` says so; one that has not stood alone gets a guessed shape.
+    pub(crate) fn learn_shapes(
+        &mut self,
+        image: ImageView<'_>,
+        seen: &[Seen],
+        wanted: &[Wanted],
+        shapes: &mut [Option<Shape>],
+    ) {
         let grid = PointGrid::new(
             seen.iter().enumerate().map(|(i, s)| (s.rect, i)),
             GRID_CELL_PX,
@@ -296,46 +393,7 @@ impl CameraShake {
                             > 0.5 * (d + seen[j].diameter_px) + 2.0 * MARGIN_PX
                 })
         };
-        self.learn(image, seen, found, &alone, shapes);
-        let (Some(lone_rms), Some(edge_px)) = (self.lone_rms, self.edge_px) else {
-            return vec![None; found.len()];
-        };
-        let mut tracked: Vec<Option<(Member, bool)>> = vec![None; seen.len()];
-        for ((f, shape), other) in found.iter().zip(shapes.iter()).zip(other_camera) {
-            tracked[f.detection] = shape.or(*other).map(|shape| {
-                let clear = seen[f.detection].clear;
-                let at = if clear {
-                    seen[f.detection].centroid
-                } else {
-                    f.predicted_px
-                };
-                (Member { at, shape }, clear)
-            });
-        }
-        let member = |j: usize| -> Member {
-            tracked[j].map_or_else(|| guessed(image, &seen[j], edge_px), |(m, _)| m)
-        };
-        found
-            .iter()
-            .map(|f| {
-                let i = f.detection;
-                let (own, clear) = tracked[i]?;
-                if clear {
-                    return None;
-                }
-                let c = seen[i].rect;
-                let mut members = vec![own];
-                for &(p, j) in grid.near(c.x, c.y, own.shape.reach_px() + widest) {
-                    let other = member(j);
-                    let apart = (p.x - c.x).hypot(p.y - c.y);
-                    if j != i && apart <= own.shape.reach_px() + other.shape.reach_px() {
-                        members.push(other);
-                    }
-                }
-                let (centres, rms) = refit(image, &members)?;
-                (rms <= MAX_RESIDUAL_RATIO * lone_rms).then_some(centres[0])
-            })
-            .collect()
+        self.learn(image, seen, wanted, &alone, shapes);
     }
 
     /// Lone found particles teach their tracks' shapes, and the camera the residual they
@@ -344,27 +402,257 @@ impl CameraShake {
         &mut self,
         image: ImageView<'_>,
         seen: &[Seen],
-        found: &[FoundIn],
+        wanted: &[Wanted],
         alone: &impl Fn(usize) -> bool,
         shapes: &mut [Option<Shape>],
     ) {
-        let (mut residuals, mut edges) = (Vec::new(), Vec::new());
-        for (f, shape) in found.iter().zip(shapes.iter_mut()) {
-            if !(shape.is_none() || f.relearn) || !alone(f.detection) {
-                continue;
+        let mut learnt = Learnt::default();
+        for (w, shape) in wanted.iter().zip(shapes.iter_mut()) {
+            // A shape is learnt once, and again when `relearn` says so; until then a guess
+            // follows the particle's size.
+            let unknown = shape.is_none_or(|s| s.guessed);
+            let attempt = shape.is_none() || w.relearn;
+            if let Some(d) = w.detection.filter(|&d| attempt && alone(d)) {
+                let s = &seen[d];
+                if let Some((shape_now, rms)) = learn_shape(image, s.centroid, s.diameter_px) {
+                    *shape = Some(shape_now);
+                    learnt.add(shape_now, rms, s.diameter_px, w.disparity_px);
+                    continue;
+                }
             }
-            let s = &seen[f.detection];
-            if let Some((learnt, rms)) = learn_shape(image, s.centroid, s.diameter_px) {
-                *shape = Some(learnt);
-                residuals.push(rms);
-                edges.push(learnt.edge_px);
+            if unknown {
+                *shape = self.guess(image, seen, w).or(*shape);
             }
         }
-        if !residuals.is_empty() {
-            let blend = |old: Option<f64>, now: f64| Some(old.map_or(now, |o| 0.9 * o + 0.1 * now));
-            self.lone_rms = blend(self.lone_rms, median(&mut residuals));
-            self.edge_px = blend(self.edge_px, median(&mut edges));
+        learnt.teach(self);
+    }
+
+    /// The shape of a particle that has not stood alone, with the camera's learnt edge: its
+    /// radius from its clear detection's size, or else from its disparity (a particle image's
+    /// size falls with depth as its disparity does); `None` until the camera has learnt from
+    /// lone particles.
+    fn guess(&self, image: ImageView<'_>, seen: &[Seen], w: &Wanted) -> Option<Shape> {
+        let edge_px = self.edge_px?;
+        let clear = w.detection.map(|d| &seen[d]).filter(|s| s.clear);
+        let radius_px = match clear {
+            Some(s) => self.radius_per_half_diameter? * 0.5 * s.diameter_px,
+            None => self.radius_per_disparity? * w.disparity_px,
+        };
+        let at = w.detection.map(|d| seen[d].centroid).or(w.predicted_px)?;
+        (radius_px > 0.0).then(|| Shape {
+            radius_px,
+            edge_px,
+            amplitude: image.bilinear(at).max(1.0),
+            guessed: true,
+        })
+    }
+}
+
+/// What one frame's lone particles taught: per particle, the residual its fit left, its edge,
+/// its radius over half its detection's diameter, and over its disparity.
+#[derive(Default)]
+struct Learnt {
+    residuals: Vec<f64>,
+    edges: Vec<f64>,
+    per_half_diameter: Vec<f64>,
+    per_disparity: Vec<f64>,
+}
+
+impl Learnt {
+    fn add(&mut self, shape: Shape, rms: f64, diameter_px: f64, disparity_px: f64) {
+        self.residuals.push(rms);
+        self.edges.push(shape.edge_px);
+        self.per_half_diameter
+            .push(shape.radius_px / (0.5 * diameter_px));
+        if disparity_px > 0.0 {
+            self.per_disparity.push(shape.radius_px / disparity_px);
         }
+    }
+
+    /// The camera's learnt scales moved a tenth of the way to this frame's medians.
+    fn teach(mut self, camera: &mut CameraShake) {
+        let blend = |old: &mut Option<f64>, values: &mut Vec<f64>| {
+            if !values.is_empty() {
+                let now = median(values);
+                *old = Some(old.map_or(now, |o| 0.9 * o + 0.1 * now));
+            }
+        };
+        blend(&mut camera.lone_rms, &mut self.residuals);
+        blend(&mut camera.edge_px, &mut self.edges);
+        blend(
+            &mut camera.radius_per_half_diameter,
+            &mut self.per_half_diameter,
+        );
+        blend(&mut camera.radius_per_disparity, &mut self.per_disparity);
+    }
+}
+
+/// Every wanted particle's member, where its track knows its shape (`shapes`, or
+/// `other_camera`'s): claimed detections seeded at their centroid if clear, else at the
+/// prediction; particles without a detection at their prediction.
+fn members_of(
+    seen: &[Seen],
+    wanted: &[Wanted],
+    shapes: &[Option<Shape>],
+    other_camera: &[Option<Shape>],
+) -> Members {
+    let mut members = Members {
+        claimed: vec![None; seen.len()],
+        hidden: vec![None; wanted.len()],
+    };
+    for (k, w) in wanted.iter().enumerate() {
+        let Some(shape) = best_known(shapes[k], other_camera[k]) else {
+            continue;
+        };
+        match w.detection {
+            Some(i) => {
+                let clear = seen[i].clear;
+                let at = match w.predicted_px {
+                    Some(p) if !clear => p,
+                    _ => seen[i].centroid,
+                };
+                members.claimed[i] = Some((Member { at, shape }, clear));
+            }
+            None => members.hidden[k] = w.predicted_px.map(|at| Member { at, shape }),
+        }
+    }
+    members
+}
+
+/// One camera's particles, as a wanted particle's group fit sees them.
+struct Group<'a> {
+    image: ImageView<'a>,
+    seen: &'a [Seen],
+    wanted: &'a [Wanted],
+    members: &'a Members,
+    grid: &'a PointGrid,
+    hidden_grid: &'a PointGrid,
+    widest: f64,
+    edge_px: f64,
+    max_rms: f64,
+}
+
+impl Group<'_> {
+    /// Wanted particle `k` measured among its neighbours; `None` where it is not fitted (no
+    /// shape known, a clear detection with no hidden particle near, or a fit that fails).
+    fn measure(&self, k: usize) -> Option<Measured> {
+        let w = &self.wanted[k];
+        let (own, clear, c) = match w.detection {
+            Some(i) => {
+                let (own, clear) = self.members.claimed[i]?;
+                (own, clear, self.seen[i].rect)
+            }
+            None => {
+                let own = self.members.hidden[k]?;
+                if !within(self.image, own.at, own.shape.reach_px()) {
+                    return None;
+                }
+                (own, false, w.predicted_rect)
+            }
+        };
+        let (mut members, unknown, hidden) = self.neighbours(k, own, c);
+        if clear && hidden.is_empty() {
+            return None;
+        }
+        // The own particle may vanish where it has no detection: the fit then tells it is gone.
+        let may_vanish = |i: usize| {
+            if i == 0 {
+                w.detection.is_none()
+            } else {
+                hidden.contains(&i)
+            }
+        };
+        let good = |members: &[Member]| {
+            refit(self.image, members)
+                .filter(|f| f.rms <= self.max_rms && stayed(f, members, may_vanish))
+        };
+        // The tracked particles' models first; detections no track knows join only where
+        // those do not explain the pixels (most are fragments of a tracked particle's image).
+        let mut fitted = good(&members);
+        if fitted.is_none() && !unknown.is_empty() {
+            members.extend(unknown);
+            fitted = good(&members);
+        }
+        let fitted = fitted?;
+        let at = fitted.members[0].at;
+        if w.detection.is_some() {
+            return Some(Measured::Refitted(at));
+        }
+        let a = fitted.members[0].shape.amplitude;
+        let moved = (at.x - own.at.x).hypot(at.y - own.at.y);
+        let apart = fitted.members[1..]
+            .iter()
+            .all(|m| (m.at.x - at.x).hypot(m.at.y - at.y) >= 0.5 * own.shape.radius_px);
+        let bright =
+            (own.shape.guessed || a >= 0.5 * own.shape.amplitude) && a >= 3.0 * self.max_rms;
+        Some(if apart && bright && moved <= own.shape.radius_px {
+            Measured::Refitted(at)
+        } else {
+            Measured::Missing
+        })
+    }
+
+    /// Wanted particle `k`'s fit group, `own` first (rectified centre `c`): the tracked
+    /// particles whose images may touch its own (at their detections, or where their tracks
+    /// put them); apart, the detections no track claimed that may touch it, as guessed discs;
+    /// and where in the group the particles without a detection are.
+    fn neighbours(
+        &self,
+        k: usize,
+        own: Member,
+        c: RectPoint,
+    ) -> (Vec<Member>, Vec<Member>, Vec<usize>) {
+        // The fit sees a box of half-width radius + margin around the particle's centre.
+        let reach = (own.shape.radius_px + MARGIN_PX) * std::f64::consts::SQRT_2;
+        let own_detection = self.wanted[k].detection;
+        let touches = |p: RectPoint, other: &Member| {
+            (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
+        };
+        let (mut tracked, mut unknown) = (vec![own], Vec::new());
+        for &(p, j) in self.grid.near(c.x, c.y, reach + self.widest) {
+            let other = match self.members.claimed[j] {
+                _ if Some(j) == own_detection => continue,
+                Some((m, _)) => m,
+                None => {
+                    let m = guessed(self.image, &self.seen[j], self.edge_px);
+                    if touches(p, &m) {
+                        unknown.push(m);
+                    }
+                    continue;
+                }
+            };
+            if touches(p, &other) {
+                tracked.push(other);
+            }
+        }
+        let mut hidden = Vec::new();
+        for &(p, j) in self.hidden_grid.near(c.x, c.y, reach + self.widest) {
+            match self.members.hidden[j] {
+                Some(m) if j != k && touches(p, &m) => {
+                    hidden.push(tracked.len());
+                    tracked.push(m);
+                }
+                _ => {}
+            }
+        }
+        (tracked, unknown, hidden)
+    }
+}
+
+/// Whether `at` is at least `margin` pixels inside the image.
+fn within(image: ImageView<'_>, at: PixelPoint, margin: f64) -> bool {
+    let inside = |c: f64, size: usize| c >= margin && c <= size as f64 - 1.0 - margin;
+    inside(at.x, image.width) && inside(at.y, image.height)
+}
+
+/// The shape to fit a particle with: its own in this camera, else the one its track learnt in
+/// the other camera (both see it from nearly the same distance), a learnt shape before a
+/// guessed one.
+fn best_known(own: Option<Shape>, other: Option<Shape>) -> Option<Shape> {
+    match (own, other) {
+        (Some(a), _) if !a.guessed => Some(a),
+        (_, Some(b)) if !b.guessed => Some(b),
+        (a, b) => a.or(b),
     }
 }
 
@@ -377,6 +665,7 @@ fn guessed(image: ImageView<'_>, s: &Seen, edge_px: f64) -> Member {
             radius_px: 0.5 * s.diameter_px,
             edge_px,
             amplitude: image.bilinear(s.centroid).max(1.0),
+            guessed: true,
         },
     }
 }
@@ -406,6 +695,7 @@ mod tests {
                 radius_px: 3.0,
                 edge_px: 0.6,
                 amplitude: 120.0,
+                guessed: false,
             },
         }
     }
@@ -429,14 +719,87 @@ mod tests {
         let image = ImageView::new(44, 30, &pixels).expect("sized");
         // Seeded most of a pixel off each, the fit lands within a few hundredths of a pixel.
         let seeds = [disc(21.0, 15.0), disc(23.6, 16.8)];
-        let (centres, rms) = refit(image, &seeds).expect("fits");
-        assert!(rms < 1.0, "{rms}");
-        for (c, t) in centres.iter().zip(&truth) {
+        let fitted = refit(image, &seeds).expect("fits");
+        assert!(stayed(&fitted, &seeds, |_| false));
+        assert!(fitted.rms < 1.0, "{}", fitted.rms);
+        for (m, t) in fitted.members.iter().zip(&truth) {
+            let c = m.at;
             assert!(
                 (c.x - t.at.x).hypot(c.y - t.at.y) < 0.05,
                 "{c:?} vs {:?}",
                 t.at
             );
         }
+    }
+
+    fn at(x: f64, y: f64) -> PixelPoint {
+        PixelPoint { x, y }
+    }
+
+    /// A camera that has learnt its lone particles' residual and edge.
+    fn learnt_camera() -> CameraShake {
+        CameraShake {
+            lone_rms: Some(0.5),
+            edge_px: Some(0.6),
+            ..Default::default()
+        }
+    }
+
+    /// Two tracked particles 4 px apart seen as one blob, claimed by the first track; the
+    /// second track has no detection of its own and is predicted most of a pixel off.
+    fn merged(second_exists: bool) -> Vec<Measured> {
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let drawn = if second_exists {
+            &truth[..]
+        } else {
+            &truth[..1]
+        };
+        let pixels = draw(44, 30, drawn);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let blob = at(22.3, 15.8);
+        let seen = [Seen {
+            centroid: blob,
+            diameter_px: 10.0,
+            clear: false,
+            rect: RectPoint {
+                x: blob.x,
+                y: blob.y,
+            },
+        }];
+        let wanted = |detection, p: PixelPoint| Wanted {
+            detection,
+            predicted_px: Some(p),
+            predicted_rect: RectPoint { x: p.x, y: p.y },
+            disparity_px: 10.0,
+            relearn: false,
+        };
+        let wanted = [
+            wanted(Some(0), at(20.8, 15.2)),
+            wanted(None, at(23.8, 16.6)),
+        ];
+        let mut shapes = [Some(truth[0].shape), Some(truth[1].shape)];
+        learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None])
+    }
+
+    #[test]
+    fn a_particle_hidden_in_its_neighbours_image_is_found_where_its_track_puts_it() {
+        let measured = merged(true);
+        let truth = [at(20.3, 15.6), at(24.4, 16.1)];
+        for (m, t) in measured.iter().zip(truth) {
+            let Measured::Refitted(c) = m else {
+                panic!("{measured:?}");
+            };
+            assert!((c.x - t.x).hypot(c.y - t.y) < 0.05, "{c:?} vs {t:?}");
+        }
+    }
+
+    #[test]
+    fn a_track_whose_particle_is_gone_finds_nothing_in_its_neighbours_image() {
+        let measured = merged(false);
+        assert_eq!(measured[1], Measured::Missing, "{measured:?}");
+        let Measured::Refitted(c) = measured[0] else {
+            panic!("{measured:?}");
+        };
+        assert!((c.x - 20.3).hypot(c.y - 15.6) < 0.05, "{c:?}");
     }
 }

@@ -1,0 +1,238 @@
+//! Track-first: the predicted particles measured in both images, and their tracks continued.
+//! A prediction found by detections in both images is measured at them (refitted where its
+//! image overlaps a neighbour's); one found in one image or none is looked for in the images
+//! themselves, fitted where its track puts it among its neighbours, and continues its track
+//! where both images show it on rows within the epipolar band.
+
+use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
+use crate::detect::{Detection, Separation};
+use crate::geometry::RectPoint;
+use crate::predict::Prediction;
+use crate::shake::refine::{self, Measured, Shape};
+use crate::shake::Shaken;
+use crate::StereoFrame;
+
+/// A prediction and the feature it claimed in each image (left, right), if any.
+type Looked = (usize, [Option<usize>; 2]);
+
+impl Pipeline {
+    /// Continues the tracks whose predicted particles were measured in both images on rows
+    /// within `band_px` of each other, and marks every claimed detection as continuing a track.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn take_found(
+        &mut self,
+        frame: &StereoFrame<'_>,
+        seq: u64,
+        (left, right): (&CameraOutput, &CameraOutput),
+        predictions: &[Prediction],
+        shaken: &Shaken,
+        band_px: f64,
+        out: &mut FrameOutput,
+    ) {
+        let looked: Vec<Looked> = shaken
+            .found
+            .iter()
+            .map(|f| (f.prediction, [Some(f.left), Some(f.right)]))
+            .chain(shaken.partial.iter().copied())
+            .collect();
+        let measured = if looked.is_empty() {
+            Vec::new()
+        } else {
+            self.measure_looked(frame, (left, right), predictions, &looked, out)
+        };
+        let found: Vec<_> = looked
+            .iter()
+            .zip(measured)
+            .filter_map(|(&(i, features), measured)| {
+                let spots = self.spots(left, right, features, measured, out)?;
+                if (spots[0].rect.y - spots[1].rect.y).abs() > band_px {
+                    return None;
+                }
+                let p = &predictions[i];
+                let miss_px = (distance_sq(spots[0].rect, p.left)
+                    + distance_sq(spots[1].rect, p.right))
+                .sqrt();
+                let (sample, point) = self.sample_at(frame, seq, spots)?;
+                Some((p.key, sample, miss_px, point))
+            })
+            .collect();
+        out.stats.predicted = predictions.len();
+        out.stats.found = found.len();
+        self.tracks.take_found(found, &mut out.points);
+        out.continued_left = left.continued(out.detections_left.len(), &shaken.claimed_left);
+        out.continued_right = right.continued(out.detections_right.len(), &shaken.claimed_right);
+        out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();
+        out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
+    }
+
+    /// Where a looked-for particle is seen in each image, if in both: at its claimed feature
+    /// as detected, or at its refitted centre (then [`Separation::Fitted`]).
+    fn spots(
+        &self,
+        left: &CameraOutput,
+        right: &CameraOutput,
+        features: [Option<usize>; 2],
+        measured: [Measured; 2],
+        out: &FrameOutput,
+    ) -> Option<[Spot; 2]> {
+        let rect = &self.rectification;
+        let spot = |c: usize| -> Option<Spot> {
+            let (camera, detections): (&CameraOutput, &[Detection]) = if c == 0 {
+                (left, &out.detections_left)
+            } else {
+                (right, &out.detections_right)
+            };
+            let detection = features[c].map(|i| &detections[camera.detection_of[i]]);
+            match measured[c] {
+                Measured::Refitted(at) => Some(Spot {
+                    rect: if c == 0 {
+                        rect.left_to_rect(at)
+                    } else {
+                        rect.right_to_rect(at)
+                    }?,
+                    px: detection.map_or(at, |d| d.centroid),
+                    separation: Separation::Fitted,
+                }),
+                Measured::AsDetected => {
+                    let (i, d) = (features[c]?, detection?);
+                    Some(Spot {
+                        rect: camera.linked[i].feature.rect,
+                        px: d.centroid,
+                        separation: d.separation,
+                    })
+                }
+                Measured::Missing => None,
+            }
+        };
+        Some([spot(0)?, spot(1)?])
+    }
+
+    /// The looked-for particles measured in both images (`shake::refine::measure`), and the
+    /// shapes their tracks learnt.
+    fn measure_looked(
+        &mut self,
+        frame: &StereoFrame<'_>,
+        (left, right): (&CameraOutput, &CameraOutput),
+        predictions: &[Prediction],
+        looked: &[Looked],
+        out: &FrameOutput,
+    ) -> Vec<[Measured; 2]> {
+        let keys: Vec<u64> = looked.iter().map(|l| predictions[l.0].key).collect();
+        let mut shapes: Vec<[Option<Shape>; 2]> =
+            keys.iter().map(|&k| self.tracks.shapes(k)).collect();
+        let relearn: Vec<bool> = keys
+            .iter()
+            .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
+            .collect();
+        let mut measured = vec![[Measured::Missing; 2]; looked.len()];
+        let cameras = [
+            (frame.left, left, &out.detections_left),
+            (frame.right, right, &out.detections_right),
+        ];
+        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
+            let seen = seen_by(camera, detections);
+            let wanted: Vec<refine::Wanted> = looked
+                .iter()
+                .zip(&relearn)
+                .map(|(&(i, features), &relearn)| {
+                    let p = &predictions[i];
+                    let (predicted_rect, predicted_px) = if c == 0 {
+                        (p.left, self.rectification.rect_to_left(p.left))
+                    } else {
+                        (p.right, self.rectification.rect_to_right(p.right))
+                    };
+                    refine::Wanted {
+                        detection: features[c],
+                        predicted_px,
+                        predicted_rect,
+                        disparity_px: p.left.x - p.right.x,
+                        relearn,
+                    }
+                })
+                .collect();
+            let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
+            let other: Vec<Option<Shape>> = shapes.iter().map(|s| s[1 - c]).collect();
+            let results = self.shake[c].measure(image, &seen, &wanted, &mut own, &other);
+            for (k, (result, shape)) in results.into_iter().zip(own).enumerate() {
+                shapes[k][c] = shape;
+                measured[k][c] = result;
+            }
+        }
+        for (&k, s) in keys.iter().zip(shapes) {
+            self.tracks.set_shapes(k, s);
+        }
+        measured
+    }
+}
+
+impl Pipeline {
+    /// The tracks the chain continued or started this frame (its stereo `pairs`, by feature
+    /// index) learn their particles' shapes where they stand alone, so that a track knows its
+    /// particle's shape before its image first overlaps another's.
+    pub(super) fn learn_young_shapes(
+        &mut self,
+        frame: &StereoFrame<'_>,
+        (left, right): (&CameraOutput, &CameraOutput),
+        pairs: &[(usize, usize)],
+        out: &FrameOutput,
+    ) {
+        let unknown = |s: &[Option<Shape>; 2]| s.iter().any(Option::is_none);
+        let young: Vec<(u64, [usize; 2])> = pairs
+            .iter()
+            .map(|&(li, ri)| (left.linked[li].track_id, [li, ri]))
+            .filter(|(key, _)| unknown(&self.tracks.shapes(*key)))
+            .collect();
+        if young.is_empty() {
+            return;
+        }
+        let mut shapes: Vec<[Option<Shape>; 2]> =
+            young.iter().map(|(k, _)| self.tracks.shapes(*k)).collect();
+        let cameras = [
+            (frame.left, left, &out.detections_left),
+            (frame.right, right, &out.detections_right),
+        ];
+        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
+            let seen = seen_by(camera, detections);
+            let wanted: Vec<refine::Wanted> = young
+                .iter()
+                .map(|&(_, [li, ri])| refine::Wanted {
+                    detection: Some(if c == 0 { li } else { ri }),
+                    predicted_px: None,
+                    predicted_rect: seen[if c == 0 { li } else { ri }].rect,
+                    disparity_px: left.linked[li].feature.rect.x - right.linked[ri].feature.rect.x,
+                    relearn: false,
+                })
+                .collect();
+            let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
+            self.shake[c].learn_shapes(image, &seen, &wanted, &mut own);
+            for (s, shape) in shapes.iter_mut().zip(own) {
+                s[c] = shape;
+            }
+        }
+        for ((k, _), s) in young.iter().zip(shapes) {
+            self.tracks.set_shapes(*k, s);
+        }
+    }
+}
+
+/// One camera's linked features as its shake sees them.
+fn seen_by(camera: &CameraOutput, detections: &[Detection]) -> Vec<refine::Seen> {
+    camera
+        .linked
+        .iter()
+        .zip(&camera.detection_of)
+        .map(|(feature, &d)| {
+            let d = &detections[d];
+            refine::Seen {
+                centroid: d.centroid,
+                diameter_px: d.diameter_px,
+                clear: d.separation == Separation::Clear,
+                rect: feature.feature.rect,
+            }
+        })
+        .collect()
+}
+
+fn distance_sq(a: RectPoint, b: RectPoint) -> f64 {
+    (a.x - b.x).powi(2) + (a.y - b.y).powi(2)
+}
