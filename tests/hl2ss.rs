@@ -7,14 +7,14 @@
 //! images, poses and (fitted) calibration.
 
 use std::io::{Read, Write};
-use std::net::TcpListener;
+use std::net::{TcpListener, TcpStream};
 use std::path::Path;
 
 use mrptv::hl2ss::holograms as hologram;
 use mrptv::hl2ss::{
     row_vector_from_isometry, StreamConfig, StreamMode, VlcCalibration, VlcFrame, VLC_PIXELS,
 };
-use mrptv::recording::Recording;
+use mrptv::recording::{FrameEntry, Recording};
 use mrptv::server::ServerOptions;
 use mrptv_engine::synth::{Scenario, ScenarioSpec};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -86,97 +86,130 @@ fn fake_camera(
 ) -> u16 {
     let listener = TcpListener::bind("127.0.0.1:0").expect("port");
     let port = listener.local_addr().expect("addr").port();
+    let camera = FakeCamera {
+        rec,
+        right,
+        camera_from_node,
+        node_from_left,
+        jitter_ticks,
+    };
     std::thread::spawn(move || {
         for stream in listener.incoming() {
             let Ok(mut stream) = stream else { return };
-            let mut first = [0u8; 1];
-            if stream.read_exact(&mut first).is_err() {
-                continue;
-            }
-            if first[0] == StreamMode::Calibration as u8 {
-                let camera = if right { rec.rig.right } else { rec.rig.left };
-                let calibration = VlcCalibration::from_camera(&camera, &camera_from_node);
-                let _ = stream.write_all(&calibration.encode());
-                continue;
-            }
-            let mut rest = [0u8; 8];
-            stream.read_exact(&mut rest).expect("configuration");
-            let mut head = [0u8; 9];
-            head[0] = first[0];
-            head[1..].copy_from_slice(&rest);
-            let mut options = vec![0u8; StreamConfig::options_bytes(&head)];
-            stream.read_exact(&mut options).expect("options");
-            let config = StreamConfig::decode(&[&head[..], &options].concat()).expect("config");
-            // Byte for byte what hl2ss's own client asks for: raw, or H.264 at some bitrate.
-            let h264 = config.profile == mrptv::hl2ss::PROFILE_H264_BASE;
-            let expected = if h264 {
-                StreamConfig::h264_with_poses(config.bitrate)
-            } else {
-                StreamConfig::raw_with_poses()
-            };
-            assert_eq!(config, expected, "the bridge asks as hl2ss's client does");
-            // Real encoded video, each access unit led by an access unit delimiter as the
-            // HoloLens's encoder writes them.
-            let mut encoder = h264.then(|| {
-                mrptv::video::H264Encoder::new(
-                    rec.rig.width,
-                    rec.rig.height,
-                    config.bitrate,
-                    30.0,
-                    mrptv::hl2ss::H264_GOP_FRAMES as u32,
-                )
-                .expect("encoder")
-            });
-            // Stamped as a current hl2ss server does: host ticks, moved by the client's
-            // options (none: raw host ticks), and the pose located at that stamp.
-            let option = |key: u64| config.options.iter().find(|(k, _)| *k == key).map(|o| o.1);
-            let exposure_factor =
-                option(mrptv::hl2ss::OPTION_TICKS_OFFSET_EXPOSURE).map_or(0.0, f64::from_bits);
-            let constant =
-                option(mrptv::hl2ss::OPTION_TICKS_OFFSET_CONSTANT).map_or(0, |v| v as i64);
-            for (i, entry) in rec.frames.iter().enumerate() {
-                if right && i == LOST_RIGHT_FRAME {
-                    continue;
-                }
-                let (l, r) = rec.load(entry).expect("frame");
-                // hl2ss's two cameras are triggered together; their stamps differ slightly.
-                let mid_exposure = FIRST_TICKS as i64
-                    + (entry.t_s * 1e7).round() as i64
-                    + if right { 120 } else { 0 };
-                let exposure_ns = 1000u64;
-                let timestamp = mid_exposure
-                    + HOST_TICKS_AFTER_MID_EXPOSURE
-                    + (exposure_factor * exposure_ns as f64 / 100.0) as i64
-                    + constant
-                    + jitter(i, right, jitter_ticks);
-                let stamped_t_s = entry.t_s + (timestamp - mid_exposure) as f64 / 1e7;
-                let world_from_node = pose_at(&rec, stamped_t_s) * node_from_left.inverse();
-                let frame = VlcFrame {
-                    timestamp: timestamp as u64,
-                    pixels: if right { r } else { l },
-                    // One sensor clock for both cameras, stepping exactly with the exposures.
-                    sensor_ticks: FIRST_SENSOR_NS + (entry.t_s * 1e9).round() as u64,
-                    exposure: exposure_ns,
-                    gain: 1,
-                    pose: Some(row_vector_from_isometry(&world_from_node)),
-                };
-                let bytes = match &mut encoder {
-                    None => frame.encode(),
-                    Some(encoder) => {
-                        let unit = encoder.encode(&frame.pixels).expect("encodes");
-                        frame.encode_as(&[&[0, 0, 0, 1, 9, 0x10][..], &unit].concat())
-                    }
-                };
-                if stream.write_all(&bytes).is_err() {
-                    break;
-                }
-                // hl2ss streams at the cameras' 30 Hz.
-                std::thread::sleep(std::time::Duration::from_millis(33));
-            }
-            // End of the stream: hl2ss closes when the app stops.
+            camera.serve(&mut stream);
         }
     });
     port
+}
+
+/// What one fake camera streams, and how it stamps it.
+struct FakeCamera {
+    rec: Recording,
+    right: bool,
+    camera_from_node: Isometry3<f64>,
+    node_from_left: Isometry3<f64>,
+    jitter_ticks: i64,
+}
+
+impl FakeCamera {
+    /// One connection: a calibration request answered, or a stream configured and played.
+    fn serve(&self, stream: &mut TcpStream) {
+        let mut first = [0u8; 1];
+        if stream.read_exact(&mut first).is_err() {
+            return;
+        }
+        if first[0] == StreamMode::Calibration as u8 {
+            let camera = if self.right {
+                self.rec.rig.right
+            } else {
+                self.rec.rig.left
+            };
+            let calibration = VlcCalibration::from_camera(&camera, &self.camera_from_node);
+            let _ = stream.write_all(&calibration.encode());
+            return;
+        }
+        let config = read_stream_config(stream, first[0]);
+        // Byte for byte what hl2ss's own client asks for: raw, or H.264 at some bitrate.
+        let expected = if config.profile == mrptv::hl2ss::PROFILE_H264_BASE {
+            StreamConfig::h264_with_poses(config.bitrate)
+        } else {
+            StreamConfig::raw_with_poses()
+        };
+        assert_eq!(config, expected, "the bridge asks as hl2ss's client does");
+        self.play(stream, &config);
+    }
+
+    /// Streams the recording at the cameras' 30 Hz until it ends or the client leaves (hl2ss
+    /// closes the stream when the app stops): raw, or real encoded video with each access
+    /// unit led by an access unit delimiter as the HoloLens's encoder writes them.
+    fn play(&self, stream: &mut TcpStream, config: &StreamConfig) {
+        let rig = &self.rec.rig;
+        let mut encoder = (config.profile == mrptv::hl2ss::PROFILE_H264_BASE).then(|| {
+            let gop = mrptv::hl2ss::H264_GOP_FRAMES as u32;
+            mrptv::video::H264Encoder::new(rig.width, rig.height, config.bitrate, 30.0, gop)
+                .expect("encoder")
+        });
+        for (i, entry) in self.rec.frames.iter().enumerate() {
+            if self.right && i == LOST_RIGHT_FRAME {
+                continue;
+            }
+            let frame = self.frame(i, entry, config);
+            let bytes = match &mut encoder {
+                None => frame.encode(),
+                Some(encoder) => {
+                    let unit = encoder.encode(&frame.pixels).expect("encodes");
+                    frame.encode_as(&[&[0, 0, 0, 1, 9, 0x10][..], &unit].concat())
+                }
+            };
+            if stream.write_all(&bytes).is_err() {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(33));
+        }
+    }
+
+    /// Frame `i` as a current hl2ss server stamps it: host ticks, moved by the client's options
+    /// (none: raw host ticks), and the pose located at that stamp.
+    fn frame(&self, i: usize, entry: &FrameEntry, config: &StreamConfig) -> VlcFrame {
+        let option = |key: u64| config.options.iter().find(|(k, _)| *k == key).map(|o| o.1);
+        let exposure_factor =
+            option(mrptv::hl2ss::OPTION_TICKS_OFFSET_EXPOSURE).map_or(0.0, f64::from_bits);
+        let constant = option(mrptv::hl2ss::OPTION_TICKS_OFFSET_CONSTANT).map_or(0, |v| v as i64);
+        let (l, r) = self.rec.load(entry).expect("frame");
+        // hl2ss's two cameras are triggered together; their stamps differ slightly.
+        let mid_exposure = FIRST_TICKS as i64
+            + (entry.t_s * 1e7).round() as i64
+            + if self.right { 120 } else { 0 };
+        let exposure_ns = 1000u64;
+        let timestamp = mid_exposure
+            + HOST_TICKS_AFTER_MID_EXPOSURE
+            + (exposure_factor * exposure_ns as f64 / 100.0) as i64
+            + constant
+            + jitter(i, self.right, self.jitter_ticks);
+        let stamped_t_s = entry.t_s + (timestamp - mid_exposure) as f64 / 1e7;
+        let world_from_node = pose_at(&self.rec, stamped_t_s) * self.node_from_left.inverse();
+        VlcFrame {
+            timestamp: timestamp as u64,
+            pixels: if self.right { r } else { l },
+            // One sensor clock for both cameras, stepping exactly with the exposures.
+            sensor_ticks: FIRST_SENSOR_NS + (entry.t_s * 1e9).round() as u64,
+            exposure: exposure_ns,
+            gain: 1,
+            pose: Some(row_vector_from_isometry(&world_from_node)),
+        }
+    }
+}
+
+/// A stream's configuration, as a client sends it after its first byte (`mode`).
+fn read_stream_config(stream: &mut TcpStream, mode: u8) -> StreamConfig {
+    let mut rest = [0u8; 8];
+    stream.read_exact(&mut rest).expect("configuration");
+    let mut head = [0u8; 9];
+    head[0] = mode;
+    head[1..].copy_from_slice(&rest);
+    let mut options = vec![0u8; StreamConfig::options_bytes(&head)];
+    stream.read_exact(&mut options).expect("options");
+    StreamConfig::decode(&[&head[..], &options].concat()).expect("config")
 }
 
 type Commands = std::sync::Arc<std::sync::Mutex<Vec<(u32, Vec<u8>)>>>;
@@ -472,7 +505,7 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let mut worst_pose = 0.0f64;
     let mut pose_errors = Vec::new();
     for got in &recorded.frames {
-        let exposure = |e: &mrptv::recording::FrameEntry| e.t_s - rec.frames[0].t_s;
+        let exposure = |e: &FrameEntry| e.t_s - rec.frames[0].t_s;
         let (original_index, original) = rec
             .frames
             .iter()

@@ -141,10 +141,25 @@ fn the_golden_field_keeps_its_own_rules() {
 
 /// Every golden message, by file name.
 fn golden() -> BTreeMap<&'static str, Vec<u8>> {
-    let spec = ScenarioSpec::new(Scenario::Flume);
     let mut config = PipelineConfig::default();
     config.velocity.half_window_frames = 5;
-    let mut g = BTreeMap::new();
+    [
+        headset_goldens(&config),
+        viewer_goldens(),
+        server_session_goldens(config),
+        server_viewer_goldens(),
+        frame_goldens(),
+        batch_goldens(),
+    ]
+    .into_iter()
+    .flatten()
+    .collect()
+}
+
+/// The headset's control messages.
+fn headset_goldens(config: &PipelineConfig) -> Vec<(&'static str, Vec<u8>)> {
+    let spec = ScenarioSpec::new(Scenario::Flume);
+    let mut g = Vec::new();
     let hello = |encoding, convention, config| {
         HeadsetMessage::Hello(Box::new(Hello {
             protocol: PROTOCOL_VERSION,
@@ -160,109 +175,128 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
             uncertainty: false,
         }))
     };
-    g.insert(
+    g.push((
         "headset-hello.json",
         json(&hello(
             Encoding::Raw8,
             Convention::Unity,
             Some(config.clone()),
         )),
-    );
-    g.insert(
+    ));
+    g.push((
         "headset-hello-png-opencv.json",
         json(&hello(Encoding::Png, Convention::OpenCv, None)),
-    );
-    g.insert(
+    ));
+    g.push((
         "headset-hello-sparse-webxr.json",
         json(&hello(Encoding::Sparse, Convention::WebXr, None)),
-    );
-    g.insert("headset-bye.json", json(&HeadsetMessage::Bye {}));
-    g.insert(
-        "viewer-subscribe.json",
-        json(&ViewerMessage::Subscribe {
-            session: "s1".into(),
-            convention: Convention::WebXr,
-            uncertainty: false,
-        }),
-    );
-    g.insert(
-        "viewer-subscribe-uncertainty.json",
-        json(&ViewerMessage::Subscribe {
-            session: "s1".into(),
-            convention: Convention::WebXr,
-            uncertainty: true,
-        }),
-    );
-    g.insert(
-        "viewer-reset_field.json",
-        json(&ViewerMessage::ResetField {
-            session: "s1".into(),
-        }),
-    );
-    g.insert(
-        "viewer-subscribe-all.json",
-        json(&ViewerMessage::Subscribe {
-            session: "*".into(),
-            convention: Convention::WebXr,
-            uncertainty: false,
-        }),
-    );
-    g.insert(
-        "viewer-unsubscribe.json",
-        json(&ViewerMessage::Unsubscribe {}),
-    );
-    g.insert("viewer-list.json", json(&ViewerMessage::List {}));
-    g.insert("viewer-ping.json", json(&ViewerMessage::Ping { id: 17 }));
-    g.insert(
-        "server-welcome.json",
-        json(&ServerMessage::Welcome {
-            protocol: PROTOCOL_VERSION,
-            server: "mrptv 0.1.0".into(),
-            session: "s1".into(),
-            session_number: 1,
-            convention: Convention::Unity,
-            config: Box::new(config),
-            queue_frames: 4,
-            refined_delay_frames: 5,
-        }),
-    );
-    g.insert(
-        "server-status.json",
-        json(&ServerMessage::Status {
-            session: "s1".into(),
-            counters: counters(),
-        }),
-    );
-    g.insert(
-        "server-dropped.json",
-        json(&ServerMessage::Dropped {
-            session: "s1".into(),
-            frame_indices: vec![41],
-            frames_dropped: 2,
-        }),
-    );
-    g.insert(
-        "server-error-bad-image.json",
-        json(&ServerMessage::Error {
-            code: ErrorCode::BadImage,
-            message: "frame 7: left image has 1000 bytes, a 640x480 raw8 image has 307200".into(),
-            frame_index: Some(7),
-        }),
-    );
-    g.insert(
-        "server-error-not-ready.json",
-        json(&ServerMessage::error(
-            ErrorCode::NotReady,
-            "frame before hello: send a hello and wait for the welcome first",
-        )),
-    );
-    g.insert(
-        "server-bye.json",
-        json(&ServerMessage::Bye {
-            reason: "client said bye".into(),
-            counters: Some(counters()),
-        }),
-    );
+    ));
+    g.push(("headset-bye.json", json(&HeadsetMessage::Bye {})));
+    g
+}
+
+/// A viewer's control messages.
+fn viewer_goldens() -> Vec<(&'static str, Vec<u8>)> {
+    vec![
+        (
+            "viewer-subscribe.json",
+            json(&ViewerMessage::Subscribe {
+                session: "s1".into(),
+                convention: Convention::WebXr,
+                uncertainty: false,
+            }),
+        ),
+        (
+            "viewer-subscribe-uncertainty.json",
+            json(&ViewerMessage::Subscribe {
+                session: "s1".into(),
+                convention: Convention::WebXr,
+                uncertainty: true,
+            }),
+        ),
+        (
+            "viewer-reset_field.json",
+            json(&ViewerMessage::ResetField {
+                session: "s1".into(),
+            }),
+        ),
+        (
+            "viewer-subscribe-all.json",
+            json(&ViewerMessage::Subscribe {
+                session: "*".into(),
+                convention: Convention::WebXr,
+                uncertainty: false,
+            }),
+        ),
+        (
+            "viewer-unsubscribe.json",
+            json(&ViewerMessage::Unsubscribe {}),
+        ),
+        ("viewer-list.json", json(&ViewerMessage::List {})),
+        ("viewer-ping.json", json(&ViewerMessage::Ping { id: 17 })),
+    ]
+}
+
+/// The server's replies to a headset's session.
+fn server_session_goldens(config: PipelineConfig) -> Vec<(&'static str, Vec<u8>)> {
+    vec![
+        (
+            "server-welcome.json",
+            json(&ServerMessage::Welcome {
+                protocol: PROTOCOL_VERSION,
+                server: "mrptv 0.1.0".into(),
+                session: "s1".into(),
+                session_number: 1,
+                convention: Convention::Unity,
+                config: Box::new(config),
+                queue_frames: 4,
+                refined_delay_frames: 5,
+            }),
+        ),
+        (
+            "server-status.json",
+            json(&ServerMessage::Status {
+                session: "s1".into(),
+                counters: counters(),
+            }),
+        ),
+        (
+            "server-dropped.json",
+            json(&ServerMessage::Dropped {
+                session: "s1".into(),
+                frame_indices: vec![41],
+                frames_dropped: 2,
+            }),
+        ),
+        (
+            "server-error-bad-image.json",
+            json(&ServerMessage::Error {
+                code: ErrorCode::BadImage,
+                message: "frame 7: left image has 1000 bytes, a 640x480 raw8 image has 307200"
+                    .into(),
+                frame_index: Some(7),
+            }),
+        ),
+        (
+            "server-error-not-ready.json",
+            json(&ServerMessage::error(
+                ErrorCode::NotReady,
+                "frame before hello: send a hello and wait for the welcome first",
+            )),
+        ),
+        (
+            "server-bye.json",
+            json(&ServerMessage::Bye {
+                reason: "client said bye".into(),
+                counters: Some(counters()),
+            }),
+        ),
+    ]
+}
+
+/// The server's messages to viewers.
+fn server_viewer_goldens() -> Vec<(&'static str, Vec<u8>)> {
+    let mut g = Vec::new();
     let info = SessionInfo {
         session: SessionDescription {
             id: "s1".into(),
@@ -276,58 +310,64 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         viewers: 2,
         counters: counters(),
     };
-    g.insert(
+    g.push((
         "server-sessions.json",
         json(&ServerMessage::Sessions {
             sessions: vec![info],
         }),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-subscribed.json",
         json(&ServerMessage::Subscribed {
             session: "s1".into(),
             convention: Convention::WebXr,
             uncertainty: false,
         }),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-field_reset.json",
         json(&ServerMessage::FieldReset {
             sessions: vec!["s1".into()],
         }),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-field.json",
         json(&ServerMessage::Field(Box::new(golden_field()))),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-unsubscribed.json",
         json(&ServerMessage::Unsubscribed),
-    );
-    g.insert("server-pong.json", json(&ServerMessage::Pong { id: 17 }));
-    g.insert(
+    ));
+    g.push(("server-pong.json", json(&ServerMessage::Pong { id: 17 })));
+    g.push((
         "server-recorded.json",
         json(&ServerMessage::Recorded {
             session: "s1".into(),
             through_frame_index: 295,
             frames_recorded: 296,
         }),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-error-unauthorized.json",
         json(&ServerMessage::error(
             ErrorCode::Unauthorized,
             "wrong secret for headsets (/v1/ingest): the ingest secret",
         )),
-    );
-    g.insert(
+    ));
+    g.push((
         "server-session_ended.json",
         json(&ServerMessage::SessionEnded {
             session: "s1".into(),
             counters: counters(),
         }),
-    );
+    ));
 
+    g
+}
+
+/// Binary frames: 4x2 images so the files can be read in a hex dump, and a sparse 8x4.
+fn frame_goldens() -> Vec<(&'static str, Vec<u8>)> {
+    let mut g = Vec::new();
     // Binary: 4x2 images so the files can be read in a hex dump.
     let left: Vec<u8> = (0..8).collect();
     let right: Vec<u8> = (100..108).collect();
@@ -342,20 +382,20 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         })
         .expect("encodes")
     };
-    g.insert(
+    g.push((
         "frame-raw8-4x2-pose.bin",
         frame(Encoding::Raw8, &left, &right, Some(pose())),
-    );
-    g.insert(
+    ));
+    g.push((
         "frame-raw8-4x2.bin",
         frame(Encoding::Raw8, &left, &right, None),
-    );
+    ));
     let left_png = encode_gray_png(&left, 4, 2).expect("png");
     let right_png = encode_gray_png(&right, 4, 2).expect("png");
-    g.insert(
+    g.push((
         "frame-png-4x2.bin",
         frame(Encoding::Png, &left_png, &right_png, None),
-    );
+    ));
     // 8x4 images: a dark background with one bright pixel each, kept with its margin.
     let dark = |bright_at: usize| {
         (0..32u8)
@@ -363,7 +403,7 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
             .collect::<Vec<u8>>()
     };
     let sparse = |pixels: &[u8]| Encoding::Sparse.encode_image(pixels, 8, 4).expect("sparse");
-    g.insert(
+    g.push((
         "frame-sparse-8x4.bin",
         frame(
             Encoding::Sparse,
@@ -371,7 +411,13 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
             &sparse(&dark(13)),
             None,
         ),
-    );
+    ));
+    g
+}
+
+/// Binary vector batches.
+fn batch_goldens() -> Vec<(&'static str, Vec<u8>)> {
+    let mut g = Vec::new();
     let batch = |kind, world, vectors| Batch {
         kind,
         session_number: 1,
@@ -382,22 +428,22 @@ fn golden() -> BTreeMap<&'static str, Vec<u8>> {
         age_us: 3400,
         vectors,
     };
-    g.insert(
+    g.push((
         "batch-causal-unity.bin",
         batch(BatchKind::Causal, true, vectors()).encode(Convention::Unity),
-    );
-    g.insert(
+    ));
+    g.push((
         "batch-refined-opencv.bin",
         batch(BatchKind::Refined, false, vectors()).encode(Convention::OpenCv),
-    );
-    g.insert(
+    ));
+    g.push((
         "batch-refined-sigmas-webxr.bin",
         batch(BatchKind::Refined, true, vectors()).encode_with(Convention::WebXr, true),
-    );
-    g.insert(
+    ));
+    g.push((
         "batch-causal-empty-webxr.bin",
         batch(BatchKind::Causal, false, Vec::new()).encode(Convention::WebXr),
-    );
+    ));
     g
 }
 
