@@ -1,6 +1,6 @@
 //! One camera's own stages: detection, rectification and per-camera linking.
 
-use super::PipelineConfig;
+use super::{PipelineConfig, Spot};
 use crate::detect::{Detection, Detector};
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::link::{CameraLinker, CostScale, Feature, LinkedFeature};
@@ -30,6 +30,16 @@ impl CameraOutput {
             continued[d] |= feature.age > 1 || claimed;
         }
         continued
+    }
+
+    /// Where feature `i` is seen, as detected (`detections`: this camera's).
+    pub(super) fn spot(&self, i: usize, detections: &[Detection]) -> Spot {
+        let d = &detections[self.detection_of[i]];
+        Spot {
+            rect: self.linked[i].feature.rect,
+            px: d.centroid,
+            separation: d.separation,
+        }
     }
 }
 

@@ -93,14 +93,7 @@ impl Pipeline {
                     px: detection.map_or(at, |d| d.centroid),
                     separation: Separation::Fitted,
                 }),
-                Measured::AsDetected => {
-                    let (i, d) = (features[c]?, detection?);
-                    Some(Spot {
-                        rect: camera.linked[i].feature.rect,
-                        px: d.centroid,
-                        separation: d.separation,
-                    })
-                }
+                Measured::AsDetected => Some(camera.spot(features[c]?, detections)),
                 Measured::Missing => None,
             }
         };
@@ -163,9 +156,7 @@ impl Pipeline {
         }
         measured
     }
-}
 
-impl Pipeline {
     /// The tracks the chain continued or started this frame (its stereo `pairs`, by feature
     /// index) learn their particles' shapes where they stand alone, so that a track knows its
     /// particle's shape before its image first overlaps another's.
@@ -195,11 +186,12 @@ impl Pipeline {
             let seen = seen_by(camera, detections);
             let wanted: Vec<refine::Wanted> = young
                 .iter()
-                .map(|&(_, [li, ri])| refine::Wanted {
-                    detection: Some(if c == 0 { li } else { ri }),
+                .map(|&(_, features)| refine::Wanted {
+                    detection: Some(features[c]),
                     predicted_px: None,
-                    predicted_rect: seen[if c == 0 { li } else { ri }].rect,
-                    disparity_px: left.linked[li].feature.rect.x - right.linked[ri].feature.rect.x,
+                    predicted_rect: seen[features[c]].rect,
+                    disparity_px: left.linked[features[0]].feature.rect.x
+                        - right.linked[features[1]].feature.rect.x,
                     relearn: false,
                 })
                 .collect();

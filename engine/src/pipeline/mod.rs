@@ -398,17 +398,9 @@ impl Pipeline {
         (li, ri): (usize, usize),
         out: &FrameOutput,
     ) -> [Spot; 2] {
-        let spot = |camera: &CameraOutput, i: usize, detections: &[Detection]| {
-            let d = &detections[camera.detection_of[i]];
-            Spot {
-                rect: camera.linked[i].feature.rect,
-                px: d.centroid,
-                separation: d.separation,
-            }
-        };
         [
-            spot(left, li, &out.detections_left),
-            spot(right, ri, &out.detections_right),
+            left.spot(li, &out.detections_left),
+            right.spot(ri, &out.detections_right),
         ]
     }
 

@@ -382,6 +382,37 @@ pub(crate) struct CameraShake {
     radius_per_disparity: Option<f64>,
 }
 
+/// One camera's detections by where they are (rectified), and the widest of them: built once
+/// per camera and frame for both learning and measuring.
+struct Neighbourhood {
+    grid: PointGrid,
+    widest: f64,
+}
+
+impl Neighbourhood {
+    fn of(seen: &[Seen]) -> Self {
+        Self {
+            grid: PointGrid::new(
+                seen.iter().enumerate().map(|(i, s)| (s.rect, i)),
+                GRID_CELL_PX,
+            ),
+            widest: seen.iter().map(|s| s.diameter_px).fold(0.0, f64::max),
+        }
+    }
+
+    /// Whether detection `i` stands alone: clear, and no other detection's image within
+    /// twice the fits' margin of its own.
+    fn alone(&self, seen: &[Seen], i: usize) -> bool {
+        let (c, d) = (seen[i].rect, seen[i].diameter_px);
+        seen[i].clear
+            && self.grid.near(c.x, c.y, d + self.widest).all(|&(p, j)| {
+                j == i
+                    || (p.x - c.x).hypot(p.y - c.y)
+                        > 0.5 * (d + seen[j].diameter_px) + 2.0 * MARGIN_PX
+            })
+    }
+}
+
 /// One camera's particles as fit members: per detection, the track's member that claimed it
 /// (with whether the detection is clear); per wanted particle without a detection, its member
 /// at its prediction.
@@ -409,12 +440,8 @@ impl CameraShake {
         shapes: &mut [Option<Shape>],
         other_camera: &[Option<Shape>],
     ) -> Vec<Measured> {
-        self.learn_shapes(image, seen, wanted, shapes);
-        let grid = PointGrid::new(
-            seen.iter().enumerate().map(|(i, s)| (s.rect, i)),
-            GRID_CELL_PX,
-        );
-        let widest = seen.iter().map(|s| s.diameter_px).fold(0.0, f64::max);
+        let near = Neighbourhood::of(seen);
+        self.learn(image, seen, wanted, &near, shapes);
         let unmeasured = |w: &Wanted| {
             w.detection
                 .map_or(Measured::Missing, |_| Measured::AsDetected)
@@ -436,9 +463,8 @@ impl CameraShake {
             seen,
             wanted,
             members: &members,
-            grid: &grid,
+            near: &near,
             hidden_grid: &hidden_grid,
-            widest,
             edge_px,
             max_rms: MAX_RESIDUAL_RATIO * lone_rms,
         };
@@ -457,21 +483,7 @@ impl CameraShake {
         wanted: &[Wanted],
         shapes: &mut [Option<Shape>],
     ) {
-        let grid = PointGrid::new(
-            seen.iter().enumerate().map(|(i, s)| (s.rect, i)),
-            GRID_CELL_PX,
-        );
-        let widest = seen.iter().map(|s| s.diameter_px).fold(0.0, f64::max);
-        let alone = |i: usize| {
-            let (c, d) = (seen[i].rect, seen[i].diameter_px);
-            seen[i].clear
-                && grid.near(c.x, c.y, d + widest).all(|&(p, j)| {
-                    j == i
-                        || (p.x - c.x).hypot(p.y - c.y)
-                            > 0.5 * (d + seen[j].diameter_px) + 2.0 * MARGIN_PX
-                })
-        };
-        self.learn(image, seen, wanted, &alone, shapes);
+        self.learn(image, seen, wanted, &Neighbourhood::of(seen), shapes);
     }
 
     /// Lone found particles teach their tracks' shapes, and the camera the residual they
@@ -481,7 +493,7 @@ impl CameraShake {
         image: ImageView<'_>,
         seen: &[Seen],
         wanted: &[Wanted],
-        alone: &impl Fn(usize) -> bool,
+        near: &Neighbourhood,
         shapes: &mut [Option<Shape>],
     ) {
         let mut learnt = Learnt::default();
@@ -490,7 +502,7 @@ impl CameraShake {
             // follows the particle's size.
             let unknown = shape.is_none_or(|s| s.guessed);
             let attempt = shape.is_none() || w.relearn;
-            if let Some(d) = w.detection.filter(|&d| attempt && alone(d)) {
+            if let Some(d) = w.detection.filter(|&d| attempt && near.alone(seen, d)) {
                 let s = &seen[d];
                 // A lone blob the disc explains worse than the camera's lone particles are
                 // explained is not one particle (two merged, a streak): nothing to learn.
@@ -610,9 +622,8 @@ struct Group<'a> {
     seen: &'a [Seen],
     wanted: &'a [Wanted],
     members: &'a Members,
-    grid: &'a PointGrid,
+    near: &'a Neighbourhood,
     hidden_grid: &'a PointGrid,
-    widest: f64,
     edge_px: f64,
     max_rms: f64,
 }
@@ -694,7 +705,7 @@ impl Group<'_> {
             (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
         };
         let (mut tracked, mut unknown) = (vec![own], Vec::new());
-        for &(p, j) in self.grid.near(c.x, c.y, reach + self.widest) {
+        for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
             let other = match self.members.claimed[j] {
                 _ if Some(j) == own_detection => continue,
                 Some((m, _)) => m,
@@ -711,7 +722,7 @@ impl Group<'_> {
             }
         }
         let mut hidden = Vec::new();
-        for &(p, j) in self.hidden_grid.near(c.x, c.y, reach + self.widest) {
+        for &(p, j) in self.hidden_grid.near(c.x, c.y, reach + self.near.widest) {
             match self.members.hidden[j] {
                 Some(m) if j != k && touches(p, &m) => {
                     hidden.push(tracked.len());
