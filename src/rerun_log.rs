@@ -54,7 +54,8 @@ pub(crate) const DEFAULT_SERVE_PORT: u16 = 9876;
 /// carries every session and keeps their history for viewers that connect later (within its
 /// memory limit, a quarter of RAM by default).
 pub struct RerunProxy {
-    _server: rerun::grpc_server::GrpcServerSink,
+    server: Option<rerun::grpc_server::GrpcServerSink>,
+    port: u16,
     url: String,
 }
 
@@ -70,17 +71,14 @@ impl RerunProxy {
         )
         .map_err(|e| RerunError::Stream(e.to_string()))?;
         // Serving once it accepts connections, so that logs sent right away are taken.
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            if std::time::Instant::now() > deadline {
-                return Err(RerunError::Stream(format!(
-                    "the Rerun gRPC server did not start on 127.0.0.1:{port}"
-                )));
-            }
-            std::thread::sleep(std::time::Duration::from_millis(20));
+        if !accepts_within(port, true) {
+            return Err(RerunError::Stream(format!(
+                "the Rerun gRPC server did not start on 127.0.0.1:{port}"
+            )));
         }
         Ok(Self {
-            _server: server,
+            server: Some(server),
+            port,
             url: format!("rerun+http://127.0.0.1:{port}/proxy"),
         })
     }
@@ -88,6 +86,30 @@ impl RerunProxy {
     /// For viewers: `rerun --connect URL`.
     pub fn url(&self) -> &str {
         &self.url
+    }
+}
+
+impl Drop for RerunProxy {
+    /// Rerun's server is told to stop and stops on its own thread: a dropped proxy waits until
+    /// its port refuses connections, so nothing sent afterwards is taken.
+    fn drop(&mut self) {
+        drop(self.server.take());
+        accepts_within(self.port, false);
+    }
+}
+
+/// Whether 127.0.0.1:`port` comes to accept connections (`accepting`), or to refuse them,
+/// within 5 s.
+fn accepts_within(port: u16, accepting: bool) -> bool {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+    loop {
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() == accepting {
+            return true;
+        }
+        if std::time::Instant::now() > deadline {
+            return false;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
     }
 }
 
