@@ -301,7 +301,9 @@ fn normal_equations(
     (jtj, jtr, cost)
 }
 
-/// The pixels (x, y, grey level) within `half` of any of the centres (a box), each once.
+/// The pixels (x, y, grey level) within `half` of any of the centres (a box), each once, but
+/// those at the sensor's full scale: a clipped pixel (where overlapping particle images add up
+/// past it, or a near particle is bright) says only that the light was at least that much.
 fn window(image: ImageView<'_>, around: &[(PixelPoint, f64)]) -> Vec<(f64, f64, f64)> {
     let (w, h) = (image.width as i64, image.height as i64);
     let bounds = |c: f64, half: f64, size: i64| {
@@ -322,9 +324,9 @@ fn window(image: ImageView<'_>, around: &[(PixelPoint, f64)]) -> Vec<(f64, f64, 
             let near = around.iter().any(|(c, half)| {
                 (x as f64 - c.x).abs() <= *half && (y as f64 - c.y).abs() <= *half
             });
-            if near {
-                let value = image.pixels[(y * w + x) as usize] as f64;
-                samples.push((x as f64, y as f64, value));
+            let value = image.pixels[(y * w + x) as usize];
+            if near && value < u8::MAX {
+                samples.push((x as f64, y as f64, f64::from(value)));
             }
         }
     }
@@ -827,6 +829,30 @@ mod tests {
         let seeds = [disc(21.0, 15.0), disc(23.6, 16.8)];
         let fitted = refit(image, &seeds).expect("fits");
         assert!(stayed(&fitted, &seeds, |_| false));
+        assert!(fitted.rms < 1.0, "{}", fitted.rms);
+        for (m, t) in fitted.members.iter().zip(&truth) {
+            let c = m.at;
+            assert!(
+                (c.x - t.at.x).hypot(c.y - t.at.y) < 0.05,
+                "{c:?} vs {:?}",
+                t.at
+            );
+        }
+    }
+
+    #[test]
+    fn bright_particles_whose_overlap_clips_are_pinned_by_the_pixels_below_full_scale() {
+        let bright = |x, y| {
+            let mut m = disc(x, y);
+            m.shape.amplitude = 170.0;
+            m
+        };
+        let truth = [bright(20.3, 15.6), bright(24.4, 16.1)];
+        let pixels = draw(44, 30, &truth);
+        assert!(pixels.iter().filter(|&&p| p == u8::MAX).count() >= 4);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let seeds = [bright(21.0, 15.0), bright(23.6, 16.8)];
+        let fitted = refit(image, &seeds).expect("fits");
         assert!(fitted.rms < 1.0, "{}", fitted.rms);
         for (m, t) in fitted.members.iter().zip(&truth) {
             let c = m.at;

@@ -7,6 +7,9 @@
 //! has missed less (a vortex's curved path wants the quadratic, a noisy straight one the line).
 //! Its search radius is a few times its own mean miss in the images, learnt the same way; a
 //! track that has not been scored yet borrows the scene's.
+//!
+//! A track predicts itself once it has [`MIN_SAMPLES`] samples, or from its third sample where
+//! its motion agrees with its mature neighbours' ([`neighbours`]): a young ghost does not.
 
 use nalgebra::{Isometry3, Point3};
 
@@ -15,10 +18,13 @@ use crate::spatial::median;
 use crate::tracks::{Sample, Track3d};
 use crate::velocity::fit::{fit_line, fit_quadratic};
 
-/// Samples a track needs before it predicts itself; below that the per-frame chain carries
-/// it. A prediction keeps finding what resembles its particle, so a track adopted too young
-/// may be a ghost pair the chain would have dropped: in dense seeding a few of those last five
-/// frames, almost none eight.
+mod neighbours;
+use neighbours::{Neighbours, YOUNG_SAMPLES};
+
+/// Samples a track needs before it predicts itself unvouched; below that the per-frame chain
+/// carries it unless its neighbours vouch for it. A prediction keeps finding what resembles its
+/// particle, so a track adopted too young on its own word may be a ghost pair the chain would
+/// have dropped: in dense seeding a few of those last five frames, almost none eight.
 const MIN_SAMPLES: usize = 8;
 /// Samples the line is fitted to: enough to average centroid noise, few enough to turn.
 const LINE_SAMPLES: usize = 4;
@@ -97,8 +103,8 @@ pub(crate) struct Prediction {
     pub(crate) gate_px: f64,
 }
 
-/// Predicts every live track of at least [`MIN_SAMPLES`] samples (unseen for at most
-/// `max_gap_frames`) at frame `seq`, time `t_s`, seen from pose `world_from_rig`. A track with
+/// Predicts every live track (unseen for at most `max_gap_frames`) of at least
+/// [`MIN_SAMPLES`] samples, or of fewer that moves as its neighbours do, at frame `seq`, time `t_s`, seen from pose `world_from_rig`. A track with
 /// no miss sigma of its own uses the median of those that have one, or else the particle
 /// images' radius `image_radius_px`; no gate is wider than that radius (a detection farther
 /// from the prediction than its own radius is another blob).
@@ -112,10 +118,17 @@ pub(crate) fn predict<'a>(
     image_radius_px: f64,
 ) -> Vec<Prediction> {
     let rig_from_world = world_from_rig.inverse();
+    let recent: Vec<(u64, &mut Track3d)> = tracks
+        .filter(|(_, t)| seq - t.last_seq() <= max_gap_frames + 1)
+        .collect();
+    let mature = |t: &Track3d| t.samples.len() >= MIN_SAMPLES;
+    let neighbours = Neighbours::of(recent.iter().map(|(_, t)| &**t), MIN_SAMPLES);
     let mut predicted: Vec<(Prediction, Option<f64>)> = Vec::new();
-    for (key, track) in tracks {
-        let recent = seq - track.last_seq() <= max_gap_frames + 1;
-        if track.samples.len() < MIN_SAMPLES || !recent {
+    for (i, (key, track)) in recent.into_iter().enumerate() {
+        let vouched = !mature(track)
+            && track.samples.len() >= YOUNG_SAMPLES
+            && neighbours.vouch_for(track, i);
+        if !mature(track) && !vouched {
             continue;
         }
         let models = model_predictions(track, t_s);

@@ -1,0 +1,204 @@
+//! Young tracks vouched for by their neighbours. A track too young to be trusted on its own
+//! samples predicts itself once its motion agrees with that of the mature tracks around it: a
+//! ghost (a wrong stereo pair) can persist like a particle where the flow is smooth, but at its
+//! wrong depth it does not move as its neighbours do. Only mature tracks vouch: at the start of
+//! a run in a room, young ghosts of what stands still outnumber the particles. How closely a
+//! young track's motion may be expected to agree is learnt from the mature tracks themselves,
+//! each judged on its newest few samples as a young track is.
+//!
+//! Depth noise grows with the square of depth and noise across the line of sight with depth,
+//! so a track's disagreement is measured in those units, along and across its line of sight.
+
+use nalgebra::Vector3;
+
+use crate::geometry::RectPoint;
+use crate::spatial::{median, PointGrid, GRID_CELL_PX};
+use crate::tracks::{Sample, Track3d};
+use crate::velocity::fit::fit_line;
+
+use super::LINE_SAMPLES;
+
+/// The mature tracks whose motion a track is compared with: its nearest in the image.
+const NEIGHBOURS: usize = 8;
+/// The fewest samples a track is judged on, and its motion taken as a neighbour's.
+pub(super) const YOUNG_SAMPLES: usize = 3;
+/// A young track agrees with its neighbours where, along and across its line of sight, it
+/// strays from their motion by at most this many times the tracks' median stray.
+const AGREEMENT: f64 = 4.0;
+
+/// The motion of the mature tracks, by where each was last seen (left image, rectified), and how
+/// far a track's newest samples typically stray from it.
+pub(super) struct Neighbours {
+    grid: PointGrid,
+    velocities: Vec<Vector3<f64>>,
+    /// Median stray along and across the line of sight, per depth squared and per depth.
+    scatter: Option<[f64; 2]>,
+}
+
+impl Neighbours {
+    /// The motion of those of `tracks` with at least `mature` samples, indexed by their order.
+    pub(super) fn of<'a>(tracks: impl Iterator<Item = &'a Track3d>, mature: usize) -> Self {
+        let mut seen: Vec<(usize, &Sample, Vector3<f64>)> = Vec::new();
+        let mut velocities = Vec::new();
+        for (i, track) in tracks.enumerate() {
+            velocities.push(velocity(track, LINE_SAMPLES).unwrap_or_else(Vector3::zeros));
+            if track.samples.len() < mature {
+                continue;
+            }
+            if let (Some(last), Some(v_young)) =
+                (track.samples.back(), velocity(track, YOUNG_SAMPLES))
+            {
+                seen.push((i, last, v_young));
+            }
+        }
+        let mut neighbours = Self {
+            grid: PointGrid::new(seen.iter().map(|&(i, s, _)| (s.left_rect, i)), GRID_CELL_PX),
+            velocities,
+            scatter: None,
+        };
+        let strays: Vec<[f64; 2]> = seen
+            .iter()
+            .filter_map(|&(i, last, v)| {
+                Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?))
+            })
+            .collect();
+        neighbours.scatter = (strays.len() >= NEIGHBOURS).then(|| {
+            let mut along: Vec<f64> = strays.iter().map(|s| s[0]).collect();
+            let mut across: Vec<f64> = strays.iter().map(|s| s[1]).collect();
+            [median(&mut along), median(&mut across)]
+        });
+        neighbours
+    }
+
+    /// Whether `track` (the `own`-th of those the neighbours were built from) moves as the
+    /// tracks around it do.
+    pub(super) fn vouch_for(&self, track: &Track3d, own: usize) -> bool {
+        let (Some(scatter), Some(last), Some(v)) = (
+            self.scatter,
+            track.samples.back(),
+            velocity(track, track.samples.len()),
+        ) else {
+            return false;
+        };
+        self.flow_at(last.left_rect, own).is_some_and(|flow| {
+            let [along, across] = stray(last, v - flow);
+            along <= AGREEMENT * scatter[0] && across <= AGREEMENT * scatter[1]
+        })
+    }
+
+    /// The median velocity (per component) of the tracks nearest `p` but the `skip`-th; `None`
+    /// where there are too few.
+    fn flow_at(&self, p: RectPoint, skip: usize) -> Option<Vector3<f64>> {
+        let near = self.grid.nearest_indexed(p.x, p.y, NEIGHBOURS, skip);
+        if near.len() < NEIGHBOURS {
+            return None;
+        }
+        let component = |c: usize| {
+            let mut values: Vec<f64> = near.iter().map(|(_, i)| self.velocities[*i][c]).collect();
+            median(&mut values)
+        };
+        Some(Vector3::new(component(0), component(1), component(2)))
+    }
+}
+
+/// How far a velocity `offset` strays, along the line of sight of the track's `last` sample per
+/// depth squared and across it per depth: the units its noise is the same in at every depth.
+fn stray(last: &Sample, offset: Vector3<f64>) -> [f64; 2] {
+    let (along, across_sq) = last.along_and_across_sq(&offset);
+    let depth = last.depth_m.max(f64::EPSILON);
+    [along.abs() / (depth * depth), across_sq.sqrt() / depth]
+}
+
+/// The velocity of a line through the track's newest `n` samples (at least [`YOUNG_SAMPLES`]).
+fn velocity(track: &Track3d, n: usize) -> Option<Vector3<f64>> {
+    if track.samples.len() < YOUNG_SAMPLES {
+        return None;
+    }
+    let skip = track.samples.len().saturating_sub(n);
+    let samples: Vec<_> = track
+        .samples
+        .iter()
+        .skip(skip)
+        .map(|s| (s.t_s, s.point_in_world))
+        .collect();
+    let t_s = samples.last()?.0;
+    fit_line(&samples, t_s).map(|f| f.velocity)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::detect::Separation;
+    use crate::predict::Predictor;
+    use nalgebra::Point3;
+    use std::collections::VecDeque;
+
+    /// A track of `frames` samples moving at `velocity` from `start`, with a little noise (up to
+    /// `wobble` metres) along its line of sight.
+    fn track(start: Point3<f64>, velocity: Vector3<f64>, frames: u64, wobble: f64) -> Track3d {
+        let samples = (1..=frames)
+            .map(|seq| {
+                let t_s = seq as f64 * 0.1;
+                let noise = wobble * [0.0, 1.0, -1.0, 0.5][seq as usize % 4];
+                Sample {
+                    seq,
+                    frame_index: seq,
+                    t_s,
+                    point_in_world: start + velocity * t_s + Vector3::z() * noise,
+                    depth_m: start.z,
+                    separation: Separation::Clear,
+                    left_rect: RectPoint {
+                        x: start.x * 1000.0,
+                        y: start.y * 1000.0,
+                    },
+                    camera_in_world: Point3::origin(),
+                }
+            })
+            .collect::<VecDeque<_>>();
+        Track3d {
+            id: 1,
+            right_track: 1,
+            samples,
+            predictor: Predictor::default(),
+            shapes: [None; 2],
+        }
+    }
+
+    /// A flow of 0.1 m/s along x: a grid of tracks, each wobbling by its own amount.
+    fn flow() -> Vec<Track3d> {
+        (0..25)
+            .map(|i| {
+                let start = Point3::new(0.01 * (i % 5) as f64, 0.01 * (i / 5) as f64, 0.5);
+                let wobble = 1e-5 * (1 + i % 4) as f64;
+                track(start, Vector3::x() * 0.1, 10, wobble)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_young_track_moving_with_its_neighbours_is_vouched_for_and_a_ghost_is_not() {
+        let mut tracks = flow();
+        let at = Point3::new(0.02, 0.02, 0.5);
+        tracks.push(track(at, Vector3::x() * 0.1, 3, 1e-5));
+        // A ghost at the wrong depth: its image moves with the flow, but not its 3D motion.
+        tracks.push(track(at, Vector3::new(0.07, 0.0, -0.02), 3, 1e-5));
+        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let n = tracks.len();
+        assert!(neighbours.vouch_for(&tracks[n - 2], n - 2));
+        assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
+    }
+
+    #[test]
+    fn without_enough_neighbours_nothing_is_vouched_for() {
+        let mut tracks: Vec<Track3d> = flow().into_iter().take(NEIGHBOURS - 1).collect();
+        tracks.push(track(
+            Point3::new(0.0, 0.0, 0.5),
+            Vector3::x() * 0.1,
+            3,
+            1e-5,
+        ));
+        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let n = tracks.len();
+        assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
+    }
+}
