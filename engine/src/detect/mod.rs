@@ -194,6 +194,10 @@ pub enum Separation {
     /// Overlapping, cut in two by 2-means, and no trustworthy spot fit: its centroid may be
     /// pulled towards its neighbour, so good for tracking and not for measuring.
     Cut,
+    /// Not seen at all: hidden in this image (behind a neighbour's image, an occluder or the
+    /// image edge) while the other image shows it, and placed where its track predicts it
+    /// (track-first partial samples). Good for keeping the track, not for measuring.
+    Hidden,
 }
 
 /// One camera's detection stage: reusable buffers, so the hot path allocates nothing once warmed

@@ -2,11 +2,14 @@
 //! A prediction found by detections in both images is measured at them (refitted where its
 //! image overlaps a neighbour's); one found in one image or none is looked for in the images
 //! themselves, fitted where its track puts it among its neighbours, and continues its track
-//! where both images show it on rows within the epipolar band.
+//! where both images show it on rows within the epipolar band. A particle one image shows and
+//! the other hides continues its track with a partial sample on the first image's line of sight
+//! at its predicted depth, for at most M frames in a row: good for keeping the track, not for
+//! measuring.
 
 use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
 use crate::detect::{Detection, Separation};
-use crate::geometry::RectPoint;
+use crate::geometry::{PixelPoint, RectPoint, Rectification};
 use crate::predict::Prediction;
 use crate::shake::refine::{self, Measured, Shape};
 use crate::shake::Shaken;
@@ -17,7 +20,8 @@ type Looked = (usize, [Option<usize>; 2]);
 
 impl Pipeline {
     /// Continues the tracks whose predicted particles were measured in both images on rows
-    /// within `band_px` of each other, and marks every claimed detection as continuing a track.
+    /// within `band_px` of each other (or in one, with a partial sample), and marks every
+    /// claimed detection as continuing a track.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn take_found(
         &mut self,
@@ -44,11 +48,18 @@ impl Pipeline {
             .iter()
             .zip(measured)
             .filter_map(|(&(i, features), measured)| {
-                let spots = self.spots(left, right, features, measured, out)?;
+                let p = &predictions[i];
+                let spots = self.spots(left, right, features, measured, out);
+                // A particle hidden in one image continues its track for at most M frames in a
+                // row: the reach of a velocity window centred on its last sample seen in both.
+                let most = self.config.velocity.half_window_frames;
+                if spots.iter().any(Option::is_none) && self.tracks.hidden_run(p.key) >= most {
+                    return None;
+                }
+                let spots = partial(spots, p, &self.rectification)?;
                 if (spots[0].rect.y - spots[1].rect.y).abs() > band_px {
                     return None;
                 }
-                let p = &predictions[i];
                 let miss_px = (distance_sq(spots[0].rect, p.left)
                     + distance_sq(spots[1].rect, p.right))
                 .sqrt();
@@ -65,8 +76,8 @@ impl Pipeline {
         out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
     }
 
-    /// Where a looked-for particle is seen in each image, if in both: at its claimed feature
-    /// as detected, or at its refitted centre (then [`Separation::Fitted`]).
+    /// Where a looked-for particle is seen in each image: at its claimed feature as detected,
+    /// or at its refitted centre (then [`Separation::Fitted`]); `None` where it is missing.
     fn spots(
         &self,
         left: &CameraOutput,
@@ -74,7 +85,7 @@ impl Pipeline {
         features: [Option<usize>; 2],
         measured: [Measured; 2],
         out: &FrameOutput,
-    ) -> Option<[Spot; 2]> {
+    ) -> [Option<Spot>; 2] {
         let rect = &self.rectification;
         let spot = |c: usize| -> Option<Spot> {
             let (camera, detections): (&CameraOutput, &[Detection]) = if c == 0 {
@@ -97,7 +108,7 @@ impl Pipeline {
                 Measured::Missing => None,
             }
         };
-        Some([spot(0)?, spot(1)?])
+        [spot(0), spot(1)]
     }
 
     /// The looked-for particles measured in both images (`shake::refine::measure`), and the
@@ -207,6 +218,42 @@ impl Pipeline {
     }
 }
 
+/// A particle seen in both images, or in one: then it is placed on that image's line of sight
+/// at its prediction's disparity (its predicted depth) in the other, [`Separation::Hidden`].
+/// `None` where neither image shows it.
+fn partial(
+    [left, right]: [Option<Spot>; 2],
+    p: &Prediction,
+    rect: &Rectification,
+) -> Option<[Spot; 2]> {
+    let disparity = p.left.x - p.right.x;
+    let hidden = |rect: RectPoint, px: Option<PixelPoint>| {
+        Some(Spot {
+            rect,
+            px: px?,
+            separation: Separation::Hidden,
+        })
+    };
+    match (left, right) {
+        (Some(l), Some(r)) => Some([l, r]),
+        (Some(l), None) => {
+            let at = RectPoint {
+                x: l.rect.x - disparity,
+                ..l.rect
+            };
+            Some([l, hidden(at, rect.rect_to_right(at))?])
+        }
+        (None, Some(r)) => {
+            let at = RectPoint {
+                x: r.rect.x + disparity,
+                ..r.rect
+            };
+            Some([hidden(at, rect.rect_to_left(at))?, r])
+        }
+        (None, None) => None,
+    }
+}
+
 /// One camera's linked features as its shake sees them.
 fn seen_by(camera: &CameraOutput, detections: &[Detection]) -> Vec<refine::Seen> {
     camera
@@ -227,4 +274,45 @@ fn seen_by(camera: &CameraOutput, detections: &[Detection]) -> Vec<refine::Seen>
 
 fn distance_sq(a: RectPoint, b: RectPoint) -> f64 {
     (a.x - b.x).powi(2) + (a.y - b.y).powi(2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{Scenario, ScenarioSpec};
+
+    fn spot(x: f64, y: f64) -> Spot {
+        Spot {
+            rect: RectPoint { x, y },
+            px: PixelPoint { x, y },
+            separation: Separation::Clear,
+        }
+    }
+
+    #[test]
+    fn a_particle_one_image_hides_is_placed_on_the_other_ones_line_of_sight_at_its_predicted_depth()
+    {
+        let rect = Rectification::new(&ScenarioSpec::new(Scenario::Flume).rig).expect("rectifies");
+        let p = Prediction {
+            key: 1,
+            left: RectPoint { x: 12.0, y: 5.0 },
+            right: RectPoint { x: -18.0, y: 5.0 },
+            gate_px: 1.0,
+        };
+        let [l, r] = partial([Some(spot(13.0, 6.0)), None], &p, &rect).expect("one image");
+        assert_eq!(
+            (l.separation, r.separation),
+            (Separation::Clear, Separation::Hidden)
+        );
+        assert_eq!((r.rect.x, r.rect.y), (13.0 - 30.0, 6.0));
+        let [l, r] = partial([None, Some(spot(-17.0, 4.0))], &p, &rect).expect("one image");
+        assert_eq!(
+            (l.separation, r.separation),
+            (Separation::Hidden, Separation::Clear)
+        );
+        assert_eq!((l.rect.x, l.rect.y), (-17.0 + 30.0, 4.0));
+        assert!(partial([None, None], &p, &rect).is_none());
+        let both = partial([Some(spot(13.0, 6.0)), Some(spot(-17.0, 6.0))], &p, &rect);
+        assert!(both.is_some_and(|s| s.iter().all(|s| s.separation == Separation::Clear)));
+    }
 }

@@ -231,6 +231,18 @@ impl Tracks {
         }
     }
 
+    /// How many of the live track's newest samples under `key` in a row are hidden in one
+    /// image ([`Separation::Hidden`]).
+    pub(crate) fn hidden_run(&self, key: u64) -> usize {
+        self.live.get(&key).map_or(0, |t| {
+            t.samples
+                .iter()
+                .rev()
+                .take_while(|s| s.separation == Separation::Hidden)
+                .count()
+        })
+    }
+
     /// Frames a live track may go unseen and still be continued.
     pub(crate) fn max_gap_frames(&self) -> u64 {
         self.limits.max_gap_frames
@@ -250,10 +262,13 @@ impl Tracks {
                 continue;
             };
             track.predictor.score(&sample, miss_px);
-            points.push(MatchedPoint {
-                track_id: track.id,
-                ..point
-            });
+            // A particle hidden in one image was not matched: it is no stereo point.
+            if sample.separation != Separation::Hidden {
+                points.push(MatchedPoint {
+                    track_id: track.id,
+                    ..point
+                });
+            }
             push_sample(&mut track, sample, self.limits.history_frames);
             self.live.insert(FOUND_KEYS | track.id, track);
         }
