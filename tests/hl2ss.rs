@@ -376,34 +376,73 @@ struct Session {
 /// recording server, and a fake message queue; everything checked.
 async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let h264 = !codec_args.is_empty();
-    let holograms_of_the_field = h264;
     let tmp = tempfile::tempdir().expect("tmp");
-    let frames = FRAMES;
-    // HoloLens 2 geometry on a moving head: a pose located off mid-exposure is another pose.
+    let rec = headset_recording(tmp.path());
+    let ports = fake_headset(&rec, timing.jitter_ticks);
+    let record = tmp.path().join("recorded");
+    let server = recording_server(&record).await;
+    let (mq_port, commands) = fake_message_queue();
+    let live = tmp.path().join("live.csv");
+    let args = bridge_args(ports, &server.ingest(), mq_port, &live, codec_args, timing);
+    let (summary, bridge_seconds) = run_bridge(args).await;
+    let processed = check_bridge_summary(&summary);
+    server.stop().await;
+
+    // The session's recording: the original images and poses, and the fitted calibration.
+    let recorded = Recording::open(&the_only_subdir(&record)).expect("recording");
+    assert_eq!(recorded.frames.len() as u64, processed);
+    let times = check_recorded_frames(&recorded, &rec, timing, h264);
+    check_fitted_calibration(&recorded, &rec);
+
+    // The vectors the bridge got back are what offline processing of that recording gives.
+    let offline = tmp.path().join("offline.csv");
+    process_offline(&recorded, &offline);
+    assert_same_rows(&live, &offline);
+    let rows = mrptv::tables::read_tracks(&live).expect("live rows");
+
+    let commands = commands.lock().expect("lock").clone();
+    check_holograms(&commands, &summary, &offline, bridge_seconds);
+    Session { rows, times }
+}
+
+/// Arrows in the hologram pool the bridge is asked for.
+const ARROWS: usize = 50;
+
+/// A synthetic HoloLens 2 recording on a moving head (a pose located off mid-exposure is
+/// another pose), written under `tmp`.
+fn headset_recording(tmp: &Path) -> Recording {
     let mut spec = ScenarioSpec::new(Scenario::HololensRaw);
     spec.head = ScenarioSpec::new(Scenario::MovingHead).head;
-    let dir = tmp.path().join("rec");
+    let dir = tmp.join("rec");
     let particles = spec.default_particles;
-    mrptv::offline::write_synthetic(spec, &dir, frames, particles, 3, |_| {}).expect("synth");
+    mrptv::offline::write_synthetic(spec, &dir, FRAMES, particles, 3, |_| {}).expect("synth");
     let rec = Recording::open(&dir).expect("recording");
-    let config = mrptv_engine::PipelineConfig::default();
     assert_eq!(rec.rig.width * rec.rig.height, VLC_PIXELS as u32);
-    // The left camera somewhere on the headset's rig node, the right one where the rig puts it.
+    rec
+}
+
+/// The fake HoloLens's two cameras, host stamps jittered by up to `jitter_ticks`: the left one
+/// somewhere on the headset's rig node, the right one where the rig puts it. Their ports.
+fn fake_headset(rec: &Recording, jitter_ticks: i64) -> (u16, u16) {
     let left_from_node = Isometry3::from_parts(
         Translation3::new(-0.04, 0.01, -0.02),
         UnitQuaternion::from_euler_angles(0.05, -0.3, 1.57),
     );
     let right_from_node = rec.rig.right_from_left * left_from_node;
     let node_from_left = left_from_node.inverse();
-    let j = timing.jitter_ticks;
-    let left_port = fake_camera(rec.clone(), false, left_from_node, node_from_left, j);
-    let right_port = fake_camera(rec.clone(), true, right_from_node, node_from_left, j);
+    let j = jitter_ticks;
+    (
+        fake_camera(rec.clone(), false, left_from_node, node_from_left, j),
+        fake_camera(rec.clone(), true, right_from_node, node_from_left, j),
+    )
+}
 
-    let record = tmp.path().join("recorded");
-    let server = TestServer::start(ServerOptions {
-        record_dir: Some(record.clone()),
-        config: config.clone(),
-        // Fields from the first refined frame on, ten a second: 40 frames are 1.3 s.
+/// A server that records its sessions into `record` and sends fields from the first refined
+/// frame on, ten a second (40 frames are 1.3 s).
+async fn recording_server(record: &Path) -> TestServer {
+    TestServer::start(ServerOptions {
+        record_dir: Some(record.to_path_buf()),
+        config: mrptv_engine::PipelineConfig::default(),
         field: mrptv::server::FieldOptions {
             cell_m: Some(0.05),
             interval: std::time::Duration::from_millis(100),
@@ -411,40 +450,57 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
         },
         ..Default::default()
     })
-    .await;
-    let (mq_port, commands) = fake_message_queue();
-    let arrows = 50usize;
-    let live = tmp.path().join("live.csv");
-    let args = [
-        "hl2ss".to_string(),
-        "--host".into(),
-        "127.0.0.1".into(),
-        "--left-port".into(),
-        left_port.to_string(),
-        "--right-port".into(),
-        right_port.to_string(),
-        "--url".into(),
-        server.ingest(),
-        "--out".into(),
-        live.display().to_string(),
-        "--json".into(),
-        "--mq-port".into(),
-        mq_port.to_string(),
-        "--hologram-arrows".into(),
-        arrows.to_string(),
-        "--hologram-rate".into(),
-        "10".into(),
-        "--frame-clock".into(),
-        timing.clock.into(),
+    .await
+}
+
+/// `mrptv hl2ss`'s arguments: the fake's cameras (`left`, `right` ports), the server's ingest
+/// `url`, the fake message queue, the live vectors to `live`, the holograms (of the field when
+/// streaming H.264), `codec_args` and the frame clock.
+fn bridge_args(
+    (left, right): (u16, u16),
+    url: &str,
+    mq_port: u16,
+    live: &Path,
+    codec_args: &[&str],
+    timing: Timing,
+) -> Vec<String> {
+    let holograms_of_the_field = !codec_args.is_empty();
+    let mut args: Vec<String> = [
+        "hl2ss",
+        "--host",
+        "127.0.0.1",
+        "--left-port",
+        &left.to_string(),
+        "--right-port",
+        &right.to_string(),
+        "--url",
+        url,
+        "--out",
+        &live.display().to_string(),
+        "--json",
+        "--mq-port",
+        &mq_port.to_string(),
+        "--hologram-arrows",
+        &ARROWS.to_string(),
+        "--hologram-rate",
+        "10",
+        "--frame-clock",
+        timing.clock,
     ]
-    .into_iter()
-    .chain(codec_args.iter().map(|a| a.to_string()))
-    .chain(if holograms_of_the_field {
-        vec!["--holograms".to_string(), "field".into()]
-    } else {
-        vec!["--holograms".to_string()]
-    })
-    .collect::<Vec<String>>();
+    .iter()
+    .chain(codec_args)
+    .map(|a| a.to_string())
+    .collect();
+    args.push("--holograms".into());
+    if holograms_of_the_field {
+        args.push("field".into());
+    }
+    args
+}
+
+/// Runs the bridge to its end: its JSON summary and how long it ran, seconds. Its fit residual
+/// is reported for each camera, and small.
+async fn run_bridge(args: Vec<String>) -> (serde_json::Value, f64) {
     let started = std::time::Instant::now();
     let out = tokio::task::spawn_blocking(move || {
         std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
@@ -458,7 +514,6 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let bridge_seconds = started.elapsed().as_secs_f64();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
-    // The fit residual is reported for each camera.
     for camera in ["left camera", "right camera"] {
         let line = stderr
             .lines()
@@ -474,103 +529,135 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     }
     let summary: serde_json::Value = serde_json::from_slice(&out.stdout).expect("a JSON summary");
     println!("{summary}\n{stderr}");
+    (summary, bridge_seconds)
+}
+
+/// The bridge's counts: every frame but the lost right one paired, and every pair processed or
+/// counted stale (a busy machine may fall behind; whether the server kept up is the
+/// benchmarks' business). The pairs processed.
+fn check_bridge_summary(summary: &serde_json::Value) -> u64 {
+    let frames = FRAMES as u64;
     let bridge = &summary["bridge"];
-    assert_eq!(bridge["left_frames"], frames as u64, "{summary}");
-    assert_eq!(bridge["right_frames"], frames as u64 - 1, "{summary}");
-    assert_eq!(bridge["pairs"], frames as u64 - 1, "{summary}");
+    assert_eq!(bridge["left_frames"], frames, "{summary}");
+    assert_eq!(bridge["right_frames"], frames - 1, "{summary}");
+    assert_eq!(bridge["pairs"], frames - 1, "{summary}");
     assert_eq!(
         bridge["unpaired_left"], 1,
         "the left frame of the lost right one: {summary}"
     );
     assert_eq!(bridge["unpaired_right"], 0, "{summary}");
     assert_eq!(bridge["unposed"], 0, "{summary}");
-    // A busy machine may fall behind and skip pairs (counted as stale): every pair is either
-    // processed or counted. Whether the server kept up is the benchmarks' business.
     let stale = bridge["stale"].as_u64().expect("stale");
     let processed = summary["frames_processed"].as_u64().expect("processed");
-    assert_eq!(processed + stale, frames as u64 - 1, "{summary}");
+    assert_eq!(processed + stale, frames - 1, "{summary}");
     assert!(processed > 0, "{summary}");
     assert_eq!(summary["errors"], 0, "{summary}");
     assert!(
         stale > 0 || summary["refined_vectors"].as_u64() > Some(100),
         "{summary}"
     );
-    server.stop().await;
+    processed
+}
 
-    // The session's recording: the original images and poses, and the fitted calibration.
-    let recorded = Recording::open(&the_only_subdir(&record)).expect("recording");
-    assert_eq!(recorded.frames.len() as u64, processed);
-    let sensor_clock = timing.clock == "sensor";
+/// Each recorded frame is one of the originals: its time the exposure's, its pose the
+/// exposure's (on the sensor clock), its images the original ones (within the codec's loss
+/// when streamed as `h264`). Per recorded frame, its `t_s`, the original's index and exposure.
+fn check_recorded_frames(
+    recorded: &Recording,
+    rec: &Recording,
+    timing: Timing,
+    h264: bool,
+) -> Vec<(f64, usize, f64)> {
     let mut times = Vec::new();
-    let mut worst_pose = 0.0f64;
     let mut pose_errors = Vec::new();
     for got in &recorded.frames {
-        let exposure = |e: &FrameEntry| e.t_s - rec.frames[0].t_s;
-        let (original_index, original) = rec
-            .frames
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| *i != LOST_RIGHT_FRAME)
-            .min_by(|a, b| {
-                let off = |e| (got.t_s - exposure(e)).abs();
-                off(a.1).total_cmp(&off(b.1))
-            })
-            .expect("originals");
-        let dt = got.t_s - exposure(original);
-        times.push((got.t_s, original_index, exposure(original)));
+        let (original_index, original) = original_of(got, rec);
+        let exposure = original.t_s - rec.frames[0].t_s;
+        times.push((got.t_s, original_index, exposure));
         // On the sensor clock, the exposure times whatever the host stamps did.
-        let tolerance_s = if sensor_clock { 1e-6 } else { 5e-3 };
+        let dt = got.t_s - exposure;
+        let tolerance_s = if timing.clock == "sensor" { 1e-6 } else { 5e-3 };
         assert!(
             dt.abs() < tolerance_s,
             "frame {} is none of the originals ({dt} s off)",
             got.index
         );
-        // The fake's world is hl2ss's (y up); the server works in OpenCV's axes (y down). On
-        // the sensor clock the pose is the exposure's, interpolated between jittered stamps.
-        let d = max_abs(
-            &got.world_from_rig.expect("posed"),
-            &(mrptv::hl2ss::bridge::opencv_from_hl2ss_world()
-                * original.world_from_rig.expect("posed")),
-        );
-        worst_pose = worst_pose.max(d);
-        pose_errors.push(d);
-        let tolerance = if j == 0 {
-            1e-5
-        } else {
-            POSE_TOLERANCE_JITTERED
-        };
-        assert!(
-            !sensor_clock || d < tolerance,
-            "frame {}: pose off by {d}",
-            got.index
-        );
+        pose_errors.push(check_recorded_pose(got, original, timing));
         let (got_images, original_images) = (
             recorded.load(got).expect("recorded"),
             rec.load(original).expect("original"),
         );
         if h264 {
-            // What the decoder gave: the image within the codec's loss.
-            for (a, b) in [
-                (&got_images.0, &original_images.0),
-                (&got_images.1, &original_images.1),
-            ] {
-                let mean_abs = a
-                    .iter()
-                    .zip(b.iter())
-                    .map(|(x, y)| f64::from(x.abs_diff(*y)))
-                    .sum::<f64>()
-                    / a.len() as f64;
-                assert!(
-                    mean_abs < 3.0,
-                    "frame {}: {mean_abs:.2} grey levels off",
-                    got.index
-                );
-                assert_ne!(a, b, "frame {}: decoded, not raw", got.index);
-            }
+            check_decoded(got.index, &got_images, &original_images);
         } else {
             assert_eq!(got_images, original_images, "frame {}", got.index);
         }
     }
+    pose_errors.sort_by(f64::total_cmp);
+    println!(
+        "recorded poses at most {:.2e} off the exposures', median {:.2e}",
+        pose_errors.last().copied().unwrap_or(0.0),
+        pose_errors[pose_errors.len() / 2]
+    );
+    times
+}
+
+/// The original frame (not the lost one) whose exposure a recorded frame's time is nearest.
+fn original_of<'a>(got: &FrameEntry, rec: &'a Recording) -> (usize, &'a FrameEntry) {
+    let exposure = |e: &FrameEntry| e.t_s - rec.frames[0].t_s;
+    rec.frames
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != LOST_RIGHT_FRAME)
+        .min_by(|a, b| {
+            let off = |e| (got.t_s - exposure(e)).abs();
+            off(a.1).total_cmp(&off(b.1))
+        })
+        .expect("originals")
+}
+
+/// How far a recorded frame's pose is from its original's. The fake's world is hl2ss's (y up);
+/// the server works in OpenCV's axes (y down). On the sensor clock the pose is the exposure's,
+/// interpolated between jittered stamps.
+fn check_recorded_pose(got: &FrameEntry, original: &FrameEntry, timing: Timing) -> f64 {
+    let d = max_abs(
+        &got.world_from_rig.expect("posed"),
+        &(mrptv::hl2ss::bridge::opencv_from_hl2ss_world()
+            * original.world_from_rig.expect("posed")),
+    );
+    let tolerance = if timing.jitter_ticks == 0 {
+        1e-5
+    } else {
+        POSE_TOLERANCE_JITTERED
+    };
+    assert!(
+        timing.clock != "sensor" || d < tolerance,
+        "frame {}: pose off by {d}",
+        got.index
+    );
+    d
+}
+
+/// What the decoder gave for frame `index`: each image within the codec's loss of the
+/// original, and not the raw one.
+fn check_decoded(index: u64, got: &(Vec<u8>, Vec<u8>), original: &(Vec<u8>, Vec<u8>)) {
+    for (a, b) in [(&got.0, &original.0), (&got.1, &original.1)] {
+        let mean_abs = a
+            .iter()
+            .zip(b.iter())
+            .map(|(x, y)| f64::from(x.abs_diff(*y)))
+            .sum::<f64>()
+            / a.len() as f64;
+        assert!(
+            mean_abs < 3.0,
+            "frame {index}: {mean_abs:.2} grey levels off"
+        );
+        assert_ne!(a, b, "frame {index}: decoded, not raw");
+    }
+}
+
+/// The calibration the bridge fitted is the recording's.
+fn check_fitted_calibration(recorded: &Recording, rec: &Recording) {
     let (fitted, truth) = (&recorded.rig, &rec.rig);
     for (a, b) in [(fitted.left, truth.left), (fitted.right, truth.right)] {
         for (x, y) in [(a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)] {
@@ -578,14 +665,15 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
         }
     }
     assert!(max_abs(&fitted.right_from_left, &truth.right_from_left) < 1e-5);
+}
 
-    // The vectors the bridge got back are what offline processing of that recording gives.
-    let offline = tmp.path().join("offline.csv");
+/// `mrptv process` on the session's recording, to `out`.
+fn process_offline(recorded: &Recording, out: &Path) {
     let processed = std::process::Command::new(env!("CARGO_BIN_EXE_mrptv"))
         .arg("process")
         .arg(recorded.dir.as_path())
         .arg("--out")
-        .arg(&offline)
+        .arg(out)
         .output()
         .expect("process runs");
     assert!(
@@ -593,16 +681,17 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
         "{}",
         String::from_utf8_lossy(&processed.stderr)
     );
-    assert_same_rows(&live, &offline);
-    let rows = mrptv::tables::read_tracks(&live).expect("live rows");
-    pose_errors.sort_by(f64::total_cmp);
-    let median_pose = pose_errors[pose_errors.len() / 2];
-    println!(
-        "recorded poses at most {worst_pose:.2e} off the exposures', median {median_pose:.2e}"
-    );
+}
 
-    // The holograms: one pool, created once, then display lists at most 10 a second.
-    let commands = commands.lock().expect("lock").clone();
+/// The holograms: one pool of arrows, created once, then display lists at most 10 a second,
+/// each arrow within reach of the vectors `process` wrote to `offline`; the pool removed at
+/// the end.
+fn check_holograms(
+    commands: &[(u32, Vec<u8>)],
+    summary: &serde_json::Value,
+    offline: &Path,
+    bridge_seconds: f64,
+) {
     let updates = summary["hologram_updates"]
         .as_u64()
         .expect("hologram updates");
@@ -610,19 +699,42 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
     let creates: Vec<usize> = (0..commands.len())
         .filter(|&i| commands[i].0 == hologram::CREATE_PRIMITIVE)
         .collect();
-    assert_eq!(creates.len(), arrows, "a pool, created once");
+    assert_eq!(creates.len(), ARROWS, "a pool, created once");
     assert!(creates
         .iter()
-        .all(|&i| i <= arrows && commands[i].1 == hologram::CYLINDER.to_le_bytes()));
-    let keys: Vec<u32> = (1001..=1000 + arrows as u32).collect();
-    let mut open = false;
-    let mut lists = 0;
-    let mut transforms = 0;
-    let offline_rows = mrptv::tables::read_tracks(&offline).expect("offline rows");
-    let (lo, hi) = offline_rows.iter().fold(
+        .all(|&i| i <= ARROWS && commands[i].1 == hologram::CYLINDER.to_le_bytes()));
+    let mut lists = DisplayLists {
+        keys: (1001..=1000 + ARROWS as u32).collect(),
+        bounds: vector_bounds(offline),
+        open: false,
+        lists: 0,
+        transforms: 0,
+    };
+    for (id, data) in commands {
+        lists.check(*id, data);
+    }
+    assert!(!lists.open);
+    // The pool's creation and hiding, then one list per update.
+    assert_eq!(lists.lists as u64, 2 + updates);
+    // 40 frames at 30 Hz is 1.3 s: at most 10 updates a second, never one per frame.
+    assert!(
+        updates >= 3 && updates as f64 <= bridge_seconds * 10.0 + 1.0,
+        "{updates} updates in {bridge_seconds:.2} s"
+    );
+    assert!(lists.transforms > 0);
+    let removed = commands
+        .iter()
+        .filter(|(id, _)| *id == hologram::REMOVE)
+        .count();
+    assert_eq!(removed, ARROWS, "the pool is removed at the end");
+}
+
+/// The box the vectors of a `tracks.csv` in OpenCV's axes lie in, in Unity's (y flipped).
+fn vector_bounds(tracks: &Path) -> ([f64; 3], [f64; 3]) {
+    let rows = mrptv::tables::read_tracks(tracks).expect("offline rows");
+    rows.iter().fold(
         ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
         |(mut lo, mut hi), r| {
-            // OpenCV's axes (offline) to Unity's: y flipped.
             let p = [r.position.x, -r.position.y, r.position.z];
             for k in 0..3 {
                 lo[k] = lo[k].min(p[k]);
@@ -630,39 +742,42 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
             }
             (lo, hi)
         },
-    );
-    for (id, data) in &commands {
-        match *id {
+    )
+}
+
+/// The hologram commands seen so far, checked one by one.
+struct DisplayLists {
+    /// The pool's objects.
+    keys: Vec<u32>,
+    /// Where the vectors are (lowest and highest corner).
+    bounds: ([f64; 3], [f64; 3]),
+    open: bool,
+    lists: usize,
+    transforms: usize,
+}
+
+impl DisplayLists {
+    /// One command: lists neither nested nor left open, transforms batched in them (unit
+    /// rotations, positive scales, arrows near the vectors), colours in range, only the pool's
+    /// objects touched.
+    fn check(&mut self, id: u32, data: &[u8]) {
+        let key = |data: &[u8]| u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+        match id {
             hologram::BEGIN_DISPLAY_LIST => {
-                assert!(!open, "display lists do not nest");
-                open = true;
-                lists += 1;
+                assert!(!self.open, "display lists do not nest");
+                self.open = true;
+                self.lists += 1;
             }
             hologram::END_DISPLAY_LIST => {
-                assert!(open, "an end without a begin");
-                open = false;
+                assert!(self.open, "an end without a begin");
+                self.open = false;
             }
             hologram::SET_WORLD_TRANSFORM => {
-                assert!(open, "transforms are batched in display lists");
+                assert!(self.open, "transforms are batched in display lists");
                 assert_eq!(data.len(), 44);
-                let key = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
-                assert!(keys.contains(&key), "an object of the pool: {key}");
-                let v = floats(&data[4..]);
-                assert!(v.iter().all(|x| x.is_finite()));
-                let q_norm = v[3..7].iter().map(|x| x * x).sum::<f32>().sqrt();
-                assert!((q_norm - 1.0).abs() < 1e-4, "unit rotation: {v:?}");
-                assert!(
-                    v[7] > 0.0 && v[8] > 0.0 && v[9] > 0.0,
-                    "positive scale: {v:?}"
-                );
-                for k in 0..3 {
-                    let c = f64::from(v[k]);
-                    assert!(
-                        c > lo[k] - 0.2 && c < hi[k] + 0.2,
-                        "arrow at {v:?} outside {lo:?}..{hi:?}"
-                    );
-                }
-                transforms += 1;
+                assert!(self.keys.contains(&key(data)), "an object of the pool");
+                self.check_transform(&floats(&data[4..]));
+                self.transforms += 1;
             }
             hologram::SET_COLOR => {
                 assert_eq!(data.len(), 20);
@@ -670,28 +785,31 @@ async fn bridge_session(codec_args: &[&str], timing: Timing) -> Session {
                 assert!(rgba.iter().all(|c| (0.0..=1.0).contains(c)), "{rgba:?}");
             }
             hologram::SET_ACTIVE => assert_eq!(data.len(), 8),
-            hologram::REMOVE => {
-                assert!(keys.contains(&u32::from_le_bytes([data[0], data[1], data[2], data[3]])))
-            }
+            hologram::REMOVE => assert!(self.keys.contains(&key(data))),
             hologram::CREATE_PRIMITIVE => {}
             other => panic!("unexpected command {other}"),
         }
     }
-    assert!(!open);
-    // The pool's creation and hiding, then one list per update.
-    assert_eq!(lists as u64, 2 + updates);
-    // 40 frames at 30 Hz is 1.3 s: at most 10 updates a second, never one per frame.
-    assert!(
-        updates >= 3 && updates as f64 <= bridge_seconds * 10.0 + 1.0,
-        "{updates} updates in {bridge_seconds:.2} s"
-    );
-    assert!(transforms > 0);
-    let removed = commands
-        .iter()
-        .filter(|(id, _)| *id == hologram::REMOVE)
-        .count();
-    assert_eq!(removed, arrows, "the pool is removed at the end");
-    Session { rows, times }
+
+    /// An arrow's transform (position, rotation, scale): finite, a unit rotation, a positive
+    /// scale, within 0.2 m of the vectors' box.
+    fn check_transform(&self, v: &[f32]) {
+        assert!(v.iter().all(|x| x.is_finite()));
+        let q_norm = v[3..7].iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!((q_norm - 1.0).abs() < 1e-4, "unit rotation: {v:?}");
+        assert!(
+            v[7] > 0.0 && v[8] > 0.0 && v[9] > 0.0,
+            "positive scale: {v:?}"
+        );
+        let (lo, hi) = self.bounds;
+        for k in 0..3 {
+            let c = f64::from(v[k]);
+            assert!(
+                c > lo[k] - 0.2 && c < hi[k] + 0.2,
+                "arrow at {v:?} outside {lo:?}..{hi:?}"
+            );
+        }
+    }
 }
 
 /// Two `tracks.csv` files with the same rows, values equal to float32 rounding; the live one in
