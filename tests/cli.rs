@@ -296,76 +296,114 @@ fn method_flag_and_config_file_are_honoured() {
     assert!(fs::read(&a).expect("a").len() > 40);
 }
 
-#[test]
-fn bad_inputs_get_clear_errors() {
-    let dir = tempfile::tempdir().expect("tmp");
-    let rec = synth(dir.path(), "flume", "3");
-    let out = dir.path().join("t.csv");
-    let process = |rec: &Path| fails(&["process", s(rec), "--out", s(&out)]);
-    let copy = |name: &str| {
-        let to = dir.path().join(name);
+/// A three-frame flume recording and copies of it to break, each processed to `out`.
+struct Breakable {
+    dir: tempfile::TempDir,
+    rec: PathBuf,
+    out: PathBuf,
+}
+
+impl Breakable {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().expect("tmp");
+        let rec = synth(dir.path(), "flume", "3");
+        let out = dir.path().join("t.csv");
+        Self { dir, rec, out }
+    }
+
+    /// A copy of the recording (rig, frames table, images) under `name`.
+    fn copy(&self, name: &str) -> PathBuf {
+        let to = self.dir.path().join(name);
         fs::create_dir_all(to.join("left")).expect("mkdir");
         fs::create_dir_all(to.join("right")).expect("mkdir");
         for f in ["rig.json", "frames.csv"] {
-            fs::copy(rec.join(f), to.join(f)).expect("copy");
+            fs::copy(self.rec.join(f), to.join(f)).expect("copy");
         }
         for side in ["left", "right"] {
             for i in 0..3 {
                 let n = format!("{i:06}.png");
-                fs::copy(rec.join(side).join(&n), to.join(side).join(&n)).expect("copy png");
+                fs::copy(self.rec.join(side).join(&n), to.join(side).join(&n)).expect("copy png");
             }
         }
         to
-    };
+    }
 
-    let e = process(&dir.path().join("nowhere"));
+    /// `mrptv process` on `rec`, which must fail: its stderr.
+    fn process(&self, rec: &Path) -> String {
+        fails(&["process", s(rec), "--out", s(&self.out)])
+    }
+
+    /// The recording's `rig.json`, as text.
+    fn rig(&self) -> String {
+        fs::read_to_string(self.rec.join("rig.json")).expect("rig")
+    }
+
+    /// A copy under `name` whose `rig.json` has `edit` applied.
+    fn with_rig(&self, name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
+        let r = self.copy(name);
+        let mut file: serde_json::Value = serde_json::from_str(&self.rig()).expect("json");
+        edit(&mut file);
+        fs::write(r.join("rig.json"), file.to_string()).expect("write");
+        r
+    }
+}
+
+#[test]
+fn a_missing_or_broken_recording_or_rig_is_named() {
+    let b = Breakable::new();
+    let e = b.process(&b.dir.path().join("nowhere"));
     assert!(
         e.contains("nowhere") && e.contains("not a recording directory"),
         "{e}"
     );
 
-    let r = copy("missing-rig");
+    let r = b.copy("missing-rig");
     fs::remove_file(r.join("rig.json")).expect("rm");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(e.contains("rig.json") && e.contains("No such file"), "{e}");
 
-    let r = copy("malformed-rig");
+    let r = b.copy("malformed-rig");
     fs::write(
         r.join("rig.json"),
         "{\"image_size\": [640, 480],\n \"K1\": [[1,0,0]}",
     )
     .expect("write");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(e.contains("rig.json") && e.contains("line 2"), "{e}");
 
-    let r = copy("nan-rig");
-    let rig = fs::read_to_string(r.join("rig.json")).expect("rig");
-    fs::write(r.join("rig.json"), rig.replacen("363.0", "NaN", 1)).expect("write");
-    let e = process(&r);
+    let r = b.copy("nan-rig");
+    fs::write(r.join("rig.json"), b.rig().replacen("363.0", "NaN", 1)).expect("write");
+    let e = b.process(&r);
     assert!(
         e.contains("rig.json") && e.contains("line"),
         "NaN is not JSON: {e}"
     );
 
-    let r = copy("singular-rig");
-    let mut file: serde_json::Value = serde_json::from_str(&rig).expect("json");
-    file["K2"][0][0] = serde_json::json!(0.0);
-    fs::write(r.join("rig.json"), file.to_string()).expect("write");
-    let e = process(&r);
+    let r = b.with_rig("singular-rig", |file| {
+        file["K2"][0][0] = serde_json::json!(0.0)
+    });
+    let e = b.process(&r);
     assert!(
         e.contains("rig.json") && e.contains("K2: focal lengths fx, fy must be positive"),
         "{e}"
     );
 
-    let r = copy("bad-frames");
-    fs::write(r.join("frames.csv"), "index,t_s\n0,0\n1,zero\n").expect("write");
-    let e = process(&r);
-    assert!(
-        e.contains("frames.csv line 3: t_s 'zero' is not a finite number"),
-        "{e}"
-    );
+    let r = b.with_rig("not-a-rotation", |file| {
+        file["R"][1][1] = serde_json::json!(2.0)
+    });
+    let e = b.process(&r);
+    assert!(e.contains("rig.json") && e.contains("R"), "{e}");
+}
 
+#[test]
+fn a_broken_frames_table_is_named_by_line() {
+    let b = Breakable::new();
     for (name, text, expected) in [
+        (
+            "bad-frames",
+            "index,t_s\n0,0\n1,zero\n",
+            "frames.csv line 3: t_s 'zero' is not a finite number",
+        ),
         (
             "empty-frames",
             "",
@@ -397,12 +435,13 @@ fn bad_inputs_get_clear_errors() {
             "frames.csv line 2: t_s 'inf' is not a finite number",
         ),
     ] {
-        let r = copy(name);
+        let r = b.copy(name);
         fs::write(r.join("frames.csv"), text).expect("write");
-        let e = process(&r);
+        let e = b.process(&r);
         assert!(e.contains(expected), "{name}: {e}");
     }
-    let r = copy("bad-pose");
+
+    let r = b.copy("bad-pose");
     let mut header = mrptv::tables::frames_header_with_pose();
     header.push('\n');
     let identity = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1";
@@ -412,21 +451,18 @@ fn bad_inputs_get_clear_errors() {
         format!("{header}0,0,{identity}\n1,0.1,{scaled}\n"),
     )
     .expect("write");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(
         e.contains("frames.csv line 3") && e.contains("world_from_rig"),
         "{e}"
     );
+}
 
-    let r = copy("not-a-rotation");
-    let mut file: serde_json::Value = serde_json::from_str(&rig).expect("json");
-    file["R"][1][1] = serde_json::json!(2.0);
-    fs::write(r.join("rig.json"), file.to_string()).expect("write");
-    let e = process(&r);
-    assert!(e.contains("rig.json") && e.contains("R"), "{e}");
-
+#[test]
+fn degenerate_images_give_no_vectors_and_bad_ones_are_named() {
+    let b = Breakable::new();
     // Degenerate but valid images: processed, no particles, no vectors, no error.
-    let r = copy("all-black-and-white");
+    let r = b.copy("all-black-and-white");
     for (side, value) in [("left", 0u8), ("right", 255u8)] {
         for i in 0..3 {
             let png =
@@ -434,13 +470,13 @@ fn bad_inputs_get_clear_errors() {
             fs::write(r.join(side).join(format!("{i:06}.png")), png).expect("write");
         }
     }
-    ok(&["process", s(&r), "--out", s(&out)]);
-    let rows = fs::read_to_string(&out).expect("tracks.csv");
+    ok(&["process", s(&r), "--out", s(&b.out)]);
+    let rows = fs::read_to_string(&b.out).expect("tracks.csv");
     assert_eq!(rows.lines().count(), 1, "a header and no vectors: {rows}");
 
-    let r = copy("missing-image");
+    let r = b.copy("missing-image");
     fs::remove_file(r.join("right").join("000002.png")).expect("rm");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(
         e.contains("000002.png") && e.contains("No such file"),
         "{e}"
@@ -451,26 +487,30 @@ fn bad_inputs_get_clear_errors() {
         "each error printed once: {e}"
     );
 
-    let r = copy("wrong-size");
+    let r = b.copy("wrong-size");
     let small = mrptv::recording::encode_gray_png(&[0u8; 32 * 24], 32, 24).expect("png");
     fs::write(r.join("left").join("000001.png"), small).expect("write");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(
         e.contains("000001.png") && e.contains("image is 32x24, rig.json image_size is 640x480"),
         "{e}"
     );
 
-    let r = copy("not-png");
+    let r = b.copy("not-png");
     fs::write(r.join("left").join("000000.png"), b"GIF89a...").expect("write");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(
         e.contains("000000.png") && e.contains("not a readable PNG"),
         "{e}"
     );
+}
 
-    let r = copy("config-typo");
+#[test]
+fn config_typos_wrong_tables_and_bad_scenarios_are_named() {
+    let b = Breakable::new();
+    let r = b.copy("config-typo");
     fs::write(r.join("mrptv.toml"), "[velocity]\nhalf_windw_frames = 3\n").expect("write");
-    let e = process(&r);
+    let e = b.process(&r);
     assert!(
         e.contains("mrptv.toml") && e.contains("half_windw_frames"),
         "{e}"
@@ -478,17 +518,17 @@ fn bad_inputs_get_clear_errors() {
 
     let e = fails(&[
         "eval",
-        s(&rec.join("truth.csv")),
-        s(&rec.join("frames.csv")),
+        s(&b.rec.join("truth.csv")),
+        s(&b.rec.join("frames.csv")),
     ]);
     assert!(
         e.contains("frames.csv line 1: header 'index,t_s' is not 'frame,t_s,track_id,x,y,z,u,v,w,su,sv,sw,sx,sy,sz' or 'frame,t_s,track_id,x,y,z,u,v,w'"),
         "{e}"
     );
 
-    let e = fails(&["synth", "nope", s(&dir.path().join("x"))]);
+    let e = fails(&["synth", "nope", s(&b.dir.path().join("x"))]);
     assert!(e.contains("unknown scenario 'nope'"), "{e}");
-    let e = fails(&["synth", "flume", s(&rec)]);
+    let e = fails(&["synth", "flume", s(&b.rec)]);
     assert!(e.contains("exists and is not empty"), "{e}");
 }
 
