@@ -161,7 +161,27 @@ fn process_writes_the_field_and_vtk_files_paraview_reads() {
         "{stderr}"
     );
     let rows = fs::read_to_string(&tracks).expect("tracks").lines().count() - 1;
-    let text = fs::read_to_string(&field).expect("field");
+    check_field_csv(&field, rows, 0.05);
+    check_vtk_reads_back_as_the_csvs(dir.path(), &rec, &tracks, &field);
+    check_old_tracks_files_still_read(dir.path(), &rec, &tracks);
+
+    let e = fails(&[
+        "process",
+        s(&rec),
+        "--out",
+        s(&tracks),
+        "--field",
+        s(&field),
+        "--field-cell",
+        "0",
+    ]);
+    assert!(e.contains("field cell size 0 m"), "{e}");
+}
+
+/// A field CSV of cells `cell_m` wide: its header, cells centred on the grid, their samples
+/// adding up to the `rows` vectors, and at least one track (at most one per sample) in each.
+fn check_field_csv(field: &Path, rows: usize, cell_m: f64) {
+    let text = fs::read_to_string(field).expect("field");
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
@@ -174,7 +194,7 @@ fn process_writes_the_field_and_vtk_files_paraview_reads() {
     assert_eq!(cells.iter().map(|c| c[3]).sum::<f64>() as usize, rows);
     for c in &cells {
         for centre in &c[0..3] {
-            let index = centre / 0.05 - 0.5;
+            let index = centre / cell_m - 0.5;
             assert!((index - index.round()).abs() < 1e-9, "centre {centre}");
         }
         assert!(
@@ -184,27 +204,10 @@ fn process_writes_the_field_and_vtk_files_paraview_reads() {
             c[3]
         );
     }
+}
 
-    // The same run as VTK: read back by meshio, values equal to the CSVs'.
-    for ext in ["vtu", "vtk"] {
-        let (vtk_tracks, vtk_field) = (
-            dir.path().join(format!("t.{ext}")),
-            dir.path().join(format!("field.{ext}")),
-        );
-        ok(&[
-            "process",
-            s(&rec),
-            "--out",
-            s(&vtk_tracks),
-            "--field",
-            s(&vtk_field),
-            "--field-cell",
-            "0.05",
-        ]);
-        let check = std::process::Command::new("python3")
-            .arg("-c")
-            .arg(
-                r#"
+/// Reads a tracks CSV, a field CSV and their VTK files (argv 1-4) with meshio: the same values.
+const VTK_READ_BACK: &str = r#"
 import sys, csv, meshio, numpy as np
 def rows(path):
     with open(path) as f:
@@ -223,9 +226,29 @@ assert np.array_equal(g.point_data["velocity"], f[:, 4:7])
 assert np.array_equal(np.ravel(g.point_data["n"]), f[:, 3])
 assert np.array_equal(g.point_data["std"], f[:, 7:10])
 print("read back", len(m.points), "vectors and", len(g.points), "cells")
-"#,
-            )
-            .args([&tracks, &field, &vtk_tracks, &vtk_field])
+"#;
+
+/// The same run as VTK (both formats), read back by meshio: values equal to the CSVs'.
+fn check_vtk_reads_back_as_the_csvs(dir: &Path, rec: &Path, tracks: &Path, field: &Path) {
+    for ext in ["vtu", "vtk"] {
+        let (vtk_tracks, vtk_field) = (
+            dir.join(format!("t.{ext}")),
+            dir.join(format!("field.{ext}")),
+        );
+        ok(&[
+            "process",
+            s(rec),
+            "--out",
+            s(&vtk_tracks),
+            "--field",
+            s(&vtk_field),
+            "--field-cell",
+            "0.05",
+        ]);
+        let check = std::process::Command::new("python3")
+            .arg("-c")
+            .arg(VTK_READ_BACK)
+            .args([tracks, field, &vtk_tracks, &vtk_field])
             .output()
             .expect("python3 runs (pip install -r tests/python/requirements.txt)");
         assert!(
@@ -235,10 +258,13 @@ print("read back", len(m.points), "vectors and", len(g.points), "cells")
             String::from_utf8_lossy(&check.stderr)
         );
     }
+}
 
-    // A tracks file written before the uncertainty columns is still read.
-    let old = dir.path().join("old.csv");
-    let nine: Vec<String> = fs::read_to_string(&tracks)
+/// A tracks file written before the uncertainty columns is still read (without the stated
+/// uncertainty), and a current one with it.
+fn check_old_tracks_files_still_read(dir: &Path, rec: &Path, tracks: &Path) {
+    let old = dir.join("old.csv");
+    let nine: Vec<String> = fs::read_to_string(tracks)
         .expect("tracks")
         .lines()
         .map(|l| l.split(',').take(9).collect::<Vec<_>>().join(","))
@@ -246,20 +272,8 @@ print("read back", len(m.points), "vectors and", len(g.points), "cells")
     fs::write(&old, nine.join("\n") + "\n").expect("write");
     let report = ok(&["eval", s(&rec.join("truth.csv")), s(&old)]);
     assert!(report.contains("ghost rate") && !report.contains("stated uncertainty"));
-    let report = ok(&["eval", s(&rec.join("truth.csv")), s(&tracks)]);
+    let report = ok(&["eval", s(&rec.join("truth.csv")), s(tracks)]);
     assert!(report.contains("velocity within 2 sigma"), "{report}");
-
-    let e = fails(&[
-        "process",
-        s(&rec),
-        "--out",
-        s(&tracks),
-        "--field",
-        s(&field),
-        "--field-cell",
-        "0",
-    ]);
-    assert!(e.contains("field cell size 0 m"), "{e}");
 }
 
 #[test]
