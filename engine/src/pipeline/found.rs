@@ -13,7 +13,7 @@ use crate::geometry::{PixelPoint, RectPoint, Rectification};
 use crate::predict::Prediction;
 use crate::shake::refine::{self, Measured, Shape};
 use crate::shake::Shaken;
-use crate::StereoFrame;
+use crate::{ImageView, StereoFrame};
 
 /// A prediction and the feature it claimed in each image (left, right), if any.
 type Looked = (usize, [Option<usize>; 2]);
@@ -129,10 +129,7 @@ impl Pipeline {
             .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
             .collect();
         let mut measured = vec![[Measured::Missing; 2]; looked.len()];
-        let cameras = [
-            (frame.left, left, &out.detections_left),
-            (frame.right, right, &out.detections_right),
-        ];
+        let cameras = cameras(frame, (left, right), out);
         for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
             let seen = seen_by(camera, detections);
             let wanted: Vec<refine::Wanted> = looked
@@ -189,10 +186,7 @@ impl Pipeline {
         }
         let mut shapes: Vec<[Option<Shape>; 2]> =
             young.iter().map(|(k, _)| self.tracks.shapes(*k)).collect();
-        let cameras = [
-            (frame.left, left, &out.detections_left),
-            (frame.right, right, &out.detections_right),
-        ];
+        let cameras = cameras(frame, (left, right), out);
         for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
             let seen = seen_by(camera, detections);
             let wanted: Vec<refine::Wanted> = young
@@ -252,6 +246,18 @@ fn partial(
         }
         (None, None) => None,
     }
+}
+
+/// Each camera's image, linked features and detections (left, right).
+fn cameras<'a>(
+    frame: &StereoFrame<'a>,
+    (left, right): (&'a CameraOutput, &'a CameraOutput),
+    out: &'a FrameOutput,
+) -> [(ImageView<'a>, &'a CameraOutput, &'a [Detection]); 2] {
+    [
+        (frame.left, left, &out.detections_left),
+        (frame.right, right, &out.detections_right),
+    ]
 }
 
 /// One camera's linked features as its shake sees them.

@@ -104,10 +104,11 @@ pub(crate) struct Prediction {
 }
 
 /// Predicts every live track (unseen for at most `max_gap_frames`) of at least
-/// [`MIN_SAMPLES`] samples, or of fewer that moves as its neighbours do, at frame `seq`, time `t_s`, seen from pose `world_from_rig`. A track with
-/// no miss sigma of its own uses the median of those that have one, or else the particle
-/// images' radius `image_radius_px`; no gate is wider than that radius (a detection farther
-/// from the prediction than its own radius is another blob).
+/// [`MIN_SAMPLES`] samples, or of fewer that moves as its neighbours do, at frame `seq`, time
+/// `t_s`, seen from pose `world_from_rig`. A track with no miss sigma of its own uses the
+/// median of those that have one, or else the particle images' radius `image_radius_px`; no
+/// gate is wider than that radius (a detection farther from the prediction than its own
+/// radius is another blob).
 pub(crate) fn predict<'a>(
     tracks: impl Iterator<Item = (u64, &'a mut Track3d)>,
     seq: u64,
@@ -121,14 +122,12 @@ pub(crate) fn predict<'a>(
     let recent: Vec<(u64, &mut Track3d)> = tracks
         .filter(|(_, t)| seq - t.last_seq() <= max_gap_frames + 1)
         .collect();
-    let mature = |t: &Track3d| t.samples.len() >= MIN_SAMPLES;
     let neighbours = Neighbours::of(recent.iter().map(|(_, t)| &**t), MIN_SAMPLES);
     let mut predicted: Vec<(Prediction, Option<f64>)> = Vec::new();
     for (i, (key, track)) in recent.into_iter().enumerate() {
-        let vouched = !mature(track)
-            && track.samples.len() >= YOUNG_SAMPLES
-            && neighbours.vouch_for(track, i);
-        if !mature(track) && !vouched {
+        let n = track.samples.len();
+        let trusted = n >= MIN_SAMPLES || (n >= YOUNG_SAMPLES && neighbours.vouch_for(track, i));
+        if !trusted {
             continue;
         }
         let models = model_predictions(track, t_s);
@@ -168,21 +167,23 @@ pub(crate) fn predict<'a>(
 
 /// Where the line and the quadratic put the track's particle at `t_s`.
 fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
-    let newest = |n: usize| -> Vec<(f64, Point3<f64>)> {
-        let skip = track.samples.len().saturating_sub(n);
-        track
-            .samples
-            .iter()
-            .skip(skip)
-            .map(|s| (s.t_s, s.point_in_world))
-            .collect()
-    };
-    let line = fit_line(&newest(LINE_SAMPLES), t_s).map(|f| f.position);
+    let line = fit_line(&newest(track, LINE_SAMPLES), t_s).map(|f| f.position);
     let quadratic = (track.samples.len() > LINE_SAMPLES)
-        .then(|| fit_quadratic(&newest(QUADRATIC_SAMPLES), t_s))
+        .then(|| fit_quadratic(&newest(track, QUADRATIC_SAMPLES), t_s))
         .flatten()
         .map(|f| f.position);
     [line, quadratic]
+}
+
+/// The track's newest `n` samples as (time, position in the world).
+fn newest(track: &Track3d, n: usize) -> Vec<(f64, Point3<f64>)> {
+    let skip = track.samples.len().saturating_sub(n);
+    track
+        .samples
+        .iter()
+        .skip(skip)
+        .map(|s| (s.t_s, s.point_in_world))
+        .collect()
 }
 
 #[cfg(test)]
@@ -208,11 +209,8 @@ mod tests {
             })
             .collect::<VecDeque<_>>();
         Track3d {
-            id: 1,
-            right_track: 1,
             samples,
-            predictor: Predictor::default(),
-            shapes: [None; 2],
+            ..Track3d::new(1, 1)
         }
     }
 

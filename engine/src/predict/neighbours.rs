@@ -16,7 +16,7 @@ use crate::spatial::{median, PointGrid, GRID_CELL_PX};
 use crate::tracks::{Sample, Track3d};
 use crate::velocity::fit::fit_line;
 
-use super::LINE_SAMPLES;
+use super::{newest, LINE_SAMPLES};
 
 /// The mature tracks whose motion a track is compared with: its nearest in the image.
 const NEIGHBOURS: usize = 8;
@@ -41,13 +41,16 @@ impl Neighbours {
         let mut seen: Vec<(usize, &Sample, Vector3<f64>)> = Vec::new();
         let mut velocities = Vec::new();
         for (i, track) in tracks.enumerate() {
-            velocities.push(velocity(track, LINE_SAMPLES).unwrap_or_else(Vector3::zeros));
-            if track.samples.len() < mature {
-                continue;
-            }
-            if let (Some(last), Some(v_young)) =
-                (track.samples.back(), velocity(track, YOUNG_SAMPLES))
-            {
+            // Indexed by the tracks' order; only the mature ones are ever looked up.
+            let motion = (track.samples.len() >= mature)
+                .then(|| {
+                    let v = velocity(track, LINE_SAMPLES)?;
+                    let v_young = velocity(track, YOUNG_SAMPLES)?;
+                    Some((track.samples.back()?, v, v_young))
+                })
+                .flatten();
+            velocities.push(motion.map_or_else(Vector3::zeros, |(_, v, _)| v));
+            if let Some((last, _, v_young)) = motion {
                 seen.push((i, last, v_young));
             }
         }
@@ -114,13 +117,7 @@ fn velocity(track: &Track3d, n: usize) -> Option<Vector3<f64>> {
     if track.samples.len() < YOUNG_SAMPLES {
         return None;
     }
-    let skip = track.samples.len().saturating_sub(n);
-    let samples: Vec<_> = track
-        .samples
-        .iter()
-        .skip(skip)
-        .map(|s| (s.t_s, s.point_in_world))
-        .collect();
+    let samples = newest(track, n);
     let t_s = samples.last()?.0;
     fit_line(&samples, t_s).map(|f| f.velocity)
 }
@@ -129,7 +126,6 @@ fn velocity(track: &Track3d, n: usize) -> Option<Vector3<f64>> {
 mod tests {
     use super::*;
     use crate::detect::Separation;
-    use crate::predict::Predictor;
     use nalgebra::Point3;
     use std::collections::VecDeque;
 
@@ -156,11 +152,8 @@ mod tests {
             })
             .collect::<VecDeque<_>>();
         Track3d {
-            id: 1,
-            right_track: 1,
             samples,
-            predictor: Predictor::default(),
-            shapes: [None; 2],
+            ..Track3d::new(1, 1)
         }
     }
 

@@ -34,8 +34,8 @@ pub struct TrackConfig {
     /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
     pub rejoin_tolerance_sigmas: f64,
     /// Track first: every 3D track of eight samples or more (or of three that moves as its
-    /// mature neighbours do) predicts its particle in the new frame and takes the detections nearest its projections in both images (learnt gates),
-    /// before the per-camera chain (2D linking, stereo matching) runs on the detections no
+    /// mature neighbours do) predicts its particle in the new frame and takes the detections
+    /// nearest its projections in both images (learnt gates), before the per-camera chain (2D linking, stereo matching) runs on the detections no
     /// track explains. False: the chain alone (the method).
     pub track_first: bool,
 }
@@ -117,6 +117,17 @@ pub(crate) struct Track3d {
 }
 
 impl Track3d {
+    /// A new track `id`, paired with right camera track `right_track`, with no samples yet.
+    pub(crate) fn new(id: u64, right_track: u64) -> Self {
+        Self {
+            id,
+            right_track,
+            samples: VecDeque::new(),
+            predictor: Predictor::default(),
+            shapes: [None; 2],
+        }
+    }
+
     /// The frame sequence number of its newest sample.
     pub(crate) fn last_seq(&self) -> u64 {
         self.samples.back().map_or(0, |s| s.seq)
@@ -381,13 +392,7 @@ impl Tracks {
                 Some(track) => track,
                 None => {
                     self.next_id += 1;
-                    Track3d {
-                        id: self.next_id,
-                        right_track: birth.right_track,
-                        samples: VecDeque::new(),
-                        predictor: Predictor::default(),
-                        shapes: [None; 2],
-                    }
+                    Track3d::new(self.next_id, birth.right_track)
                 }
             };
             self.extend(track, birth, points, continued);
