@@ -144,16 +144,7 @@ fn process_writes_the_field_and_vtk_files_paraview_reads() {
     let dir = tempfile::tempdir().expect("tmp");
     let rec = synth(dir.path(), "flume", "60");
     let (tracks, field) = (dir.path().join("t.csv"), dir.path().join("field.csv"));
-    let said = mrptv(&[
-        "process",
-        s(&rec),
-        "--out",
-        s(&tracks),
-        "--field",
-        s(&field),
-        "--field-cell",
-        "0.05",
-    ]);
+    let said = mrptv(&field_run(&rec, &tracks, &field, "0.05"));
     assert!(said.status.success());
     let stderr = String::from_utf8_lossy(&said.stderr);
     assert!(
@@ -165,17 +156,22 @@ fn process_writes_the_field_and_vtk_files_paraview_reads() {
     check_vtk_reads_back_as_the_csvs(dir.path(), &rec, &tracks, &field);
     check_old_tracks_files_still_read(dir.path(), &rec, &tracks);
 
-    let e = fails(&[
-        "process",
-        s(&rec),
-        "--out",
-        s(&tracks),
-        "--field",
-        s(&field),
-        "--field-cell",
-        "0",
-    ]);
+    let e = fails(&field_run(&rec, &tracks, &field, "0"));
     assert!(e.contains("field cell size 0 m"), "{e}");
+}
+
+/// `mrptv process` of `rec` to `tracks`, with the field in cells `cell` metres wide to `field`.
+fn field_run<'a>(rec: &'a Path, tracks: &'a Path, field: &'a Path, cell: &'a str) -> [&'a str; 8] {
+    [
+        "process",
+        s(rec),
+        "--out",
+        s(tracks),
+        "--field",
+        s(field),
+        "--field-cell",
+        cell,
+    ]
 }
 
 /// A field CSV of cells `cell_m` wide: its header, cells centred on the grid, their samples
@@ -235,16 +231,7 @@ fn check_vtk_reads_back_as_the_csvs(dir: &Path, rec: &Path, tracks: &Path, field
             dir.join(format!("t.{ext}")),
             dir.join(format!("field.{ext}")),
         );
-        ok(&[
-            "process",
-            s(rec),
-            "--out",
-            s(&vtk_tracks),
-            "--field",
-            s(&vtk_field),
-            "--field-cell",
-            "0.05",
-        ]);
+        ok(&field_run(rec, &vtk_tracks, &vtk_field, "0.05"));
         let check = std::process::Command::new("python3")
             .arg("-c")
             .arg(VTK_READ_BACK)
