@@ -10,6 +10,9 @@
 //!
 //! A track predicts itself once it has [`MIN_SAMPLES`] samples, or from its third sample where
 //! its motion agrees with its mature neighbours' ([`neighbours`]): a young ghost does not.
+//! Younger still (one or two samples: a new stereo pair), it is carried by its neighbours' flow
+//! where it lies among them, and continues only where detections in both images are found
+//! there; a hypothesis that time settles, in 3D, where the chain would link it per camera.
 
 use nalgebra::{Isometry3, Point3};
 
@@ -101,6 +104,9 @@ pub(crate) struct Prediction {
     pub(crate) right: RectPoint,
     /// How far from the projections, rectified pixels, its particle may be found.
     pub(crate) gate_px: f64,
+    /// Carried by its neighbours' flow (a track too young for a motion of its own): found only
+    /// by detections in both images, never looked for in the images themselves.
+    pub(crate) carried: bool,
 }
 
 /// Predicts every live track (unseen for at most `max_gap_frames`) of at least
@@ -127,10 +133,16 @@ pub(crate) fn predict<'a>(
     for (i, (key, track)) in recent.into_iter().enumerate() {
         let n = track.samples.len();
         let trusted = n >= MIN_SAMPLES || (n >= YOUNG_SAMPLES && neighbours.vouch_for(track, i));
-        if !trusted {
+        let carried = (!trusted && n < YOUNG_SAMPLES)
+            .then(|| neighbours.carry(track, i, t_s))
+            .flatten();
+        if !trusted && carried.is_none() {
             continue;
         }
-        let models = model_predictions(track, t_s);
+        let models = match carried {
+            Some(p) => [Some(p), None],
+            None => model_predictions(track, t_s),
+        };
         track.predictor.pending = Some((seq, models));
         let Some(point_in_world) = models[track.predictor.followed()].or(models[LINE]) else {
             continue;
@@ -143,6 +155,7 @@ pub(crate) fn predict<'a>(
             left,
             right,
             gate_px: 0.0,
+            carried: carried.is_some(),
         };
         predicted.push((prediction, track.predictor.sigma_px()));
     }

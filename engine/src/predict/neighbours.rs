@@ -9,7 +9,7 @@
 //! Depth noise grows with the square of depth and noise across the line of sight with depth,
 //! so a track's disagreement is measured in those units, along and across its line of sight.
 
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 
 use crate::geometry::RectPoint;
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
@@ -31,6 +31,8 @@ const AGREEMENT: f64 = 4.0;
 pub(super) struct Neighbours {
     grid: PointGrid,
     velocities: Vec<Vector3<f64>>,
+    /// Their newest samples' depths, metres.
+    depths: Vec<f64>,
     /// Median stray along and across the line of sight, per depth squared and per depth.
     scatter: Option<[f64; 2]>,
 }
@@ -40,6 +42,7 @@ impl Neighbours {
     pub(super) fn of<'a>(tracks: impl Iterator<Item = &'a Track3d>, mature: usize) -> Self {
         let mut seen: Vec<(usize, &Sample, Vector3<f64>)> = Vec::new();
         let mut velocities = Vec::new();
+        let mut depths = Vec::new();
         for (i, track) in tracks.enumerate() {
             // Indexed by the tracks' order; only the mature ones are ever looked up.
             let motion = (track.samples.len() >= mature)
@@ -50,6 +53,7 @@ impl Neighbours {
                 })
                 .flatten();
             velocities.push(motion.map_or_else(Vector3::zeros, |(_, v, _)| v));
+            depths.push(motion.map_or(0.0, |(s, _, _)| s.depth_m));
             if let Some((last, _, v_young)) = motion {
                 seen.push((i, last, v_young));
             }
@@ -57,12 +61,13 @@ impl Neighbours {
         let mut neighbours = Self {
             grid: PointGrid::new(seen.iter().map(|&(i, s, _)| (s.left_rect, i)), GRID_CELL_PX),
             velocities,
+            depths,
             scatter: None,
         };
         let strays: Vec<[f64; 2]> = seen
             .iter()
             .filter_map(|&(i, last, v)| {
-                Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?))
+                Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?.0))
             })
             .collect();
         neighbours.scatter = (strays.len() >= NEIGHBOURS).then(|| {
@@ -83,15 +88,29 @@ impl Neighbours {
         ) else {
             return false;
         };
-        self.flow_at(last.left_rect, own).is_some_and(|flow| {
+        self.flow_at(last.left_rect, own).is_some_and(|(flow, _)| {
             let [along, across] = stray(last, v - flow);
             along <= AGREEMENT * scatter[0] && across <= AGREEMENT * scatter[1]
         })
     }
 
-    /// The median velocity (per component) of the tracks nearest `p` but the `skip`-th; `None`
-    /// where there are too few.
-    fn flow_at(&self, p: RectPoint, skip: usize) -> Option<Vector3<f64>> {
+    /// Where a track too young for a motion of its own (the `own`-th) is carried at `t_s` by
+    /// the flow around it: its newest sample moved at its neighbours' median velocity. Only
+    /// where the flow is known (enough mature tracks to judge by) and the track lies among its
+    /// neighbours in depth: a young ghost in front of or behind every track around it is where
+    /// no flow has been seen, and a flow carried there would move its image as no particle's.
+    pub(super) fn carry(&self, track: &Track3d, own: usize, t_s: f64) -> Option<Point3<f64>> {
+        let last = track.samples.back()?;
+        self.scatter?;
+        let (flow, [nearest, farthest]) = self.flow_at(last.left_rect, own)?;
+        (nearest..=farthest)
+            .contains(&last.depth_m)
+            .then(|| last.point_in_world + flow * (t_s - last.t_s))
+    }
+
+    /// The median velocity (per component) of the tracks nearest `p` but the `skip`-th, and
+    /// the range of their depths; `None` where there are too few.
+    fn flow_at(&self, p: RectPoint, skip: usize) -> Option<(Vector3<f64>, [f64; 2])> {
         let near = self.grid.nearest_indexed(p.x, p.y, NEIGHBOURS, skip);
         if near.len() < NEIGHBOURS {
             return None;
@@ -100,7 +119,12 @@ impl Neighbours {
             let mut values: Vec<f64> = near.iter().map(|(_, i)| self.velocities[*i][c]).collect();
             median(&mut values)
         };
-        Some(Vector3::new(component(0), component(1), component(2)))
+        let depths = near.iter().map(|(_, i)| self.depths[*i]);
+        let span = [
+            depths.clone().fold(f64::INFINITY, f64::min),
+            depths.fold(f64::NEG_INFINITY, f64::max),
+        ];
+        Some((Vector3::new(component(0), component(1), component(2)), span))
     }
 }
 
@@ -182,6 +206,32 @@ mod tests {
     }
 
     #[test]
+    fn a_new_pair_among_its_neighbours_is_carried_by_their_flow_and_one_behind_them_is_not() {
+        let mut tracks = flow();
+        tracks.push(track(
+            Point3::new(0.02, 0.02, 0.5),
+            Vector3::zeros(),
+            1,
+            0.0,
+        ));
+        // The same image position at twice the depth: behind every track around it.
+        let mut behind = track(Point3::new(0.02, 0.02, 1.0), Vector3::zeros(), 1, 0.0);
+        behind.samples[0].left_rect = tracks[tracks.len() - 1].samples[0].left_rect;
+        tracks.push(behind);
+        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let n = tracks.len();
+        let carried = neighbours
+            .carry(&tracks[n - 2], n - 2, 0.3)
+            .expect("carried");
+        // Its one sample was at t = 0.1 s; the flow moves it 0.1 m/s along x for 0.2 s.
+        assert!(
+            (carried - Point3::new(0.04, 0.02, 0.5)).norm() < 1e-3,
+            "{carried}"
+        );
+        assert!(neighbours.carry(&tracks[n - 1], n - 1, 0.3).is_none());
+    }
+
+    #[test]
     fn without_enough_neighbours_nothing_is_vouched_for() {
         let mut tracks: Vec<Track3d> = flow().into_iter().take(NEIGHBOURS - 1).collect();
         tracks.push(track(
@@ -193,5 +243,6 @@ mod tests {
         let neighbours = Neighbours::of(tracks.iter(), 10);
         let n = tracks.len();
         assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
+        assert!(neighbours.carry(&tracks[n - 1], n - 1, 0.4).is_none());
     }
 }

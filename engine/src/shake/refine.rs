@@ -382,6 +382,9 @@ pub(crate) struct CameraShake {
     radius_per_half_diameter: Option<f64>,
     /// A learnt disc radius over the particle's disparity, rectified pixels.
     radius_per_disparity: Option<f64>,
+    /// The largest radius of the lone particles: a guessed shape is no larger (a guess from a
+    /// ghost's disparity or a large bright blob would otherwise cover the image).
+    widest_px: Option<f64>,
 }
 
 /// One camera's detections by where they are (rectified), and the widest of them: built once
@@ -448,7 +451,9 @@ impl CameraShake {
             w.detection
                 .map_or(Measured::Missing, |_| Measured::AsDetected)
         };
-        let (Some(lone_rms), Some(edge_px)) = (self.lone_rms, self.edge_px) else {
+        let (Some(lone_rms), Some(edge_px), Some(widest_px)) =
+            (self.lone_rms, self.edge_px, self.widest_px)
+        else {
             return wanted.iter().map(unmeasured).collect();
         };
         let members = members_of(seen, wanted, shapes, other_camera);
@@ -468,6 +473,7 @@ impl CameraShake {
             near: &near,
             hidden_grid: &hidden_grid,
             edge_px,
+            widest_px,
             max_rms: MAX_RESIDUAL_RATIO * lone_rms,
         };
         (0..wanted.len())
@@ -539,7 +545,7 @@ impl CameraShake {
         };
         let at = w.detection.map(|d| seen[d].centroid).or(w.predicted_px)?;
         (radius_px > 0.0).then(|| Shape {
-            radius_px,
+            radius_px: radius_px.min(self.widest_px.unwrap_or(radius_px)),
             edge_px,
             amplitude: image.bilinear(at).max(1.0),
             guessed: true,
@@ -555,12 +561,14 @@ struct Learnt {
     edges: Vec<f64>,
     per_half_diameter: Vec<f64>,
     per_disparity: Vec<f64>,
+    radii: Vec<f64>,
 }
 
 impl Learnt {
     fn add(&mut self, shape: Shape, rms: f64, diameter_px: f64, disparity_px: f64) {
         self.residuals.push(rms);
         self.edges.push(shape.edge_px);
+        self.radii.push(shape.radius_px);
         self.per_half_diameter
             .push(shape.radius_px / (0.5 * diameter_px));
         if disparity_px > 0.0 {
@@ -583,6 +591,9 @@ impl Learnt {
             &mut self.per_half_diameter,
         );
         blend(&mut camera.radius_per_disparity, &mut self.per_disparity);
+        if let Some(widest) = self.radii.iter().copied().reduce(f64::max) {
+            camera.widest_px = Some(camera.widest_px.map_or(widest, |o| 0.9 * o + 0.1 * widest));
+        }
     }
 }
 
@@ -627,6 +638,7 @@ struct Group<'a> {
     near: &'a Neighbourhood,
     hidden_grid: &'a PointGrid,
     edge_px: f64,
+    widest_px: f64,
     max_rms: f64,
 }
 
@@ -712,7 +724,7 @@ impl Group<'_> {
                 _ if Some(j) == own_detection => continue,
                 Some((m, _)) => m,
                 None => {
-                    let m = guessed(self.image, &self.seen[j], self.edge_px);
+                    let m = guessed(self.image, &self.seen[j], self.edge_px, self.widest_px);
                     if touches(p, &m) {
                         unknown.push(m);
                     }
@@ -754,13 +766,13 @@ fn best_known(own: Option<Shape>, other: Option<Shape>) -> Option<Shape> {
     }
 }
 
-/// A detection no track knows, as a fit member: a disc of its diameter with the camera's edge,
-/// at its centroid.
-fn guessed(image: ImageView<'_>, s: &Seen, edge_px: f64) -> Member {
+/// A detection no track knows, as a fit member: a disc of its diameter (at most `widest_px`
+/// in radius) with the camera's edge, at its centroid.
+fn guessed(image: ImageView<'_>, s: &Seen, edge_px: f64, widest_px: f64) -> Member {
     Member {
         at: s.centroid,
         shape: Shape {
-            radius_px: 0.5 * s.diameter_px,
+            radius_px: (0.5 * s.diameter_px).min(widest_px),
             edge_px,
             amplitude: image.bilinear(s.centroid).max(1.0),
             guessed: true,
@@ -871,6 +883,7 @@ mod tests {
         CameraShake {
             lone_rms: Some(0.5),
             edge_px: Some(0.6),
+            widest_px: Some(3.0),
             ..Default::default()
         }
     }
@@ -931,5 +944,33 @@ mod tests {
             panic!("{measured:?}");
         };
         assert!((c.x - 20.3).hypot(c.y - 15.6) < 0.05, "{c:?}");
+    }
+
+    #[test]
+    fn no_guessed_shape_is_wider_than_the_widest_lone_particle() {
+        // A ghost pair 10 cm in front of the rig has a disparity of hundreds of pixels.
+        let camera = CameraShake {
+            radius_per_disparity: Some(0.05),
+            ..learnt_camera()
+        };
+        let pixels = vec![0u8; 64 * 48];
+        let image = ImageView::new(64, 48, &pixels).expect("sized");
+        let wanted = |disparity_px| Wanted {
+            detection: None,
+            predicted_px: Some(at(30.0, 20.0)),
+            predicted_rect: RectPoint { x: 30.0, y: 20.0 },
+            disparity_px,
+            relearn: false,
+        };
+        let radius = |w| camera.guess(image, &[], &w).expect("guessed").radius_px;
+        assert!((radius(wanted(40.0)) - 2.0).abs() < 1e-12);
+        assert_eq!(radius(wanted(300.0)), 3.0);
+        let blob = Seen {
+            centroid: at(30.0, 20.0),
+            diameter_px: 40.0,
+            clear: true,
+            rect: RectPoint { x: 30.0, y: 20.0 },
+        };
+        assert_eq!(guessed(image, &blob, 0.6, 3.0).shape.radius_px, 3.0);
     }
 }
