@@ -170,6 +170,24 @@ impl Rectification {
         self.to_rect(&self.right, &self.rect_from_right, p)
     }
 
+    /// [`Self::left_to_rect`] for camera 0, [`Self::right_to_rect`] for camera 1.
+    pub(crate) fn pixel_to_rect(&self, camera: usize, p: PixelPoint) -> Option<RectPoint> {
+        if camera == 0 {
+            self.left_to_rect(p)
+        } else {
+            self.right_to_rect(p)
+        }
+    }
+
+    /// [`Self::rect_to_left`] for camera 0, [`Self::rect_to_right`] for camera 1.
+    pub(crate) fn rect_to_pixel(&self, camera: usize, p: RectPoint) -> Option<PixelPoint> {
+        if camera == 0 {
+            self.rect_to_left(p)
+        } else {
+            self.rect_to_right(p)
+        }
+    }
+
     /// Depth from disparity (method eqs. 10-12) in the virtual pair, returned in the rig frame.
     /// `None` for a non-positive disparity (a point at or beyond infinity).
     pub fn triangulate(&self, left: RectPoint, right: RectPoint) -> Option<Triangulated> {

@@ -86,21 +86,14 @@ impl Pipeline {
         measured: [Measured; 2],
         out: &FrameOutput,
     ) -> [Option<Spot>; 2] {
-        let rect = &self.rectification;
+        let cameras: [(&CameraOutput, &[Detection]); 2] =
+            [(left, &out.detections_left), (right, &out.detections_right)];
         let spot = |c: usize| -> Option<Spot> {
-            let (camera, detections): (&CameraOutput, &[Detection]) = if c == 0 {
-                (left, &out.detections_left)
-            } else {
-                (right, &out.detections_right)
-            };
+            let (camera, detections) = cameras[c];
             let detection = features[c].map(|i| &detections[camera.detection_of[i]]);
             match measured[c] {
                 Measured::Refitted(at) => Some(Spot {
-                    rect: if c == 0 {
-                        rect.left_to_rect(at)
-                    } else {
-                        rect.right_to_rect(at)
-                    }?,
+                    rect: self.rectification.pixel_to_rect(c, at)?,
                     px: detection.map_or(at, |d| d.centroid),
                     separation: Separation::Fitted,
                 }),
@@ -137,15 +130,10 @@ impl Pipeline {
                 .zip(&relearn)
                 .map(|(&(i, features), &relearn)| {
                     let p = &predictions[i];
-                    let (predicted_rect, predicted_px) = if c == 0 {
-                        (p.left, self.rectification.rect_to_left(p.left))
-                    } else {
-                        (p.right, self.rectification.rect_to_right(p.right))
-                    };
                     refine::Wanted {
                         detection: features[c],
-                        predicted_px,
-                        predicted_rect,
+                        predicted_px: self.rectification.rect_to_pixel(c, p.at(c)),
+                        predicted_rect: p.at(c),
                         disparity_px: p.left.x - p.right.x,
                         relearn,
                     }

@@ -109,6 +109,17 @@ pub(crate) struct Prediction {
     pub(crate) carried: bool,
 }
 
+impl Prediction {
+    /// Its projection into camera `camera`'s rectified image (0: left, 1: right).
+    pub(crate) fn at(&self, camera: usize) -> RectPoint {
+        if camera == 0 {
+            self.left
+        } else {
+            self.right
+        }
+    }
+}
+
 /// Predicts every live track (unseen for at most `max_gap_frames`) of at least
 /// [`MIN_SAMPLES`] samples, or of fewer that moves as its neighbours do, at frame `seq`, time
 /// `t_s`, seen from pose `world_from_rig`. A track with no miss sigma of its own uses the
