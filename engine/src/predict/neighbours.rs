@@ -67,7 +67,7 @@ impl Neighbours {
         let strays: Vec<[f64; 2]> = seen
             .iter()
             .filter_map(|&(i, last, v)| {
-                Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?.0))
+                Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?))
             })
             .collect();
         neighbours.scatter = (strays.len() >= NEIGHBOURS).then(|| {
@@ -88,7 +88,7 @@ impl Neighbours {
         ) else {
             return false;
         };
-        self.flow_at(last.left_rect, own).is_some_and(|(flow, _)| {
+        self.flow_at(last.left_rect, own).is_some_and(|flow| {
             let [along, across] = stray(last, v - flow);
             along <= AGREEMENT * scatter[0] && across <= AGREEMENT * scatter[1]
         })
@@ -102,29 +102,36 @@ impl Neighbours {
     pub(super) fn carry(&self, track: &Track3d, own: usize, t_s: f64) -> Option<Point3<f64>> {
         let last = track.samples.back()?;
         self.scatter?;
-        let (flow, [nearest, farthest]) = self.flow_at(last.left_rect, own)?;
+        let near = self.nearest(last.left_rect, own)?;
+        let depths = near.iter().map(|&i| self.depths[i]);
+        let nearest = depths.clone().fold(f64::INFINITY, f64::min);
+        let farthest = depths.fold(f64::NEG_INFINITY, f64::max);
         (nearest..=farthest)
             .contains(&last.depth_m)
-            .then(|| last.point_in_world + flow * (t_s - last.t_s))
+            .then(|| last.point_in_world + self.median_velocity(&near) * (t_s - last.t_s))
     }
 
-    /// The median velocity (per component) of the tracks nearest `p` but the `skip`-th, and
-    /// the range of their depths; `None` where there are too few.
-    fn flow_at(&self, p: RectPoint, skip: usize) -> Option<(Vector3<f64>, [f64; 2])> {
+    /// The median velocity (per component) of the tracks nearest `p` but the `skip`-th; `None`
+    /// where there are too few.
+    fn flow_at(&self, p: RectPoint, skip: usize) -> Option<Vector3<f64>> {
+        self.nearest(p, skip)
+            .map(|near| self.median_velocity(&near))
+    }
+
+    /// The [`NEIGHBOURS`] tracks nearest `p` but the `skip`-th, by index; `None` where there
+    /// are fewer.
+    fn nearest(&self, p: RectPoint, skip: usize) -> Option<Vec<usize>> {
         let near = self.grid.nearest_indexed(p.x, p.y, NEIGHBOURS, skip);
-        if near.len() < NEIGHBOURS {
-            return None;
-        }
+        (near.len() >= NEIGHBOURS).then(|| near.into_iter().map(|(_, i)| i).collect())
+    }
+
+    /// The median velocity (per component) of the tracks `near`.
+    fn median_velocity(&self, near: &[usize]) -> Vector3<f64> {
         let component = |c: usize| {
-            let mut values: Vec<f64> = near.iter().map(|(_, i)| self.velocities[*i][c]).collect();
+            let mut values: Vec<f64> = near.iter().map(|&i| self.velocities[i][c]).collect();
             median(&mut values)
         };
-        let depths = near.iter().map(|(_, i)| self.depths[*i]);
-        let span = [
-            depths.clone().fold(f64::INFINITY, f64::min),
-            depths.fold(f64::NEG_INFINITY, f64::max),
-        ];
-        Some((Vector3::new(component(0), component(1), component(2)), span))
+        Vector3::new(component(0), component(1), component(2))
     }
 }
 

@@ -577,24 +577,29 @@ impl Learnt {
         }
     }
 
-    /// The camera's learnt scales moved a tenth of the way to this frame's medians.
+    /// The camera's learnt scales moved a tenth of the way to this frame's medians (its widest
+    /// radius to this frame's widest).
     fn teach(mut self, camera: &mut CameraShake) {
-        let blend = |old: &mut Option<f64>, values: &mut Vec<f64>| {
-            if !values.is_empty() {
-                let now = median(values);
+        let blend = |old: &mut Option<f64>, now: Option<f64>| {
+            if let Some(now) = now {
                 *old = Some(old.map_or(now, |o| 0.9 * o + 0.1 * now));
             }
         };
-        blend(&mut camera.lone_rms, &mut self.residuals);
-        blend(&mut camera.edge_px, &mut self.edges);
+        let middle = |values: &mut Vec<f64>| (!values.is_empty()).then(|| median(values));
+        blend(&mut camera.lone_rms, middle(&mut self.residuals));
+        blend(&mut camera.edge_px, middle(&mut self.edges));
         blend(
             &mut camera.radius_per_half_diameter,
-            &mut self.per_half_diameter,
+            middle(&mut self.per_half_diameter),
         );
-        blend(&mut camera.radius_per_disparity, &mut self.per_disparity);
-        if let Some(widest) = self.radii.iter().copied().reduce(f64::max) {
-            camera.widest_px = Some(camera.widest_px.map_or(widest, |o| 0.9 * o + 0.1 * widest));
-        }
+        blend(
+            &mut camera.radius_per_disparity,
+            middle(&mut self.per_disparity),
+        );
+        blend(
+            &mut camera.widest_px,
+            self.radii.iter().copied().reduce(f64::max),
+        );
     }
 }
 
