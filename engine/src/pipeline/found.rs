@@ -121,11 +121,9 @@ impl Pipeline {
             .iter()
             .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
             .collect();
-        let mut measured = vec![[Measured::Missing; 2]; looked.len()];
         let cameras = cameras(frame, (left, right), out);
-        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
-            let seen = seen_by(camera, detections);
-            let wanted: Vec<refine::Wanted> = looked
+        let wanted = |c: usize| -> Vec<refine::Wanted> {
+            looked
                 .iter()
                 .zip(&relearn)
                 .map(|(&(i, features), &relearn)| {
@@ -138,15 +136,41 @@ impl Pipeline {
                         relearn,
                     }
                 })
-                .collect();
-            let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
-            let other: Vec<Option<Shape>> = shapes.iter().map(|s| s[1 - c]).collect();
-            let results = self.shake[c].measure(image, &seen, &wanted, &mut own, &other);
-            for (k, (result, shape)) in results.into_iter().zip(own).enumerate() {
-                shapes[k][c] = shape;
-                measured[k][c] = result;
-            }
+                .collect()
+        };
+        let (wanted_left, wanted_right) = (wanted(0), wanted(1));
+        // Each camera borrows the other's shapes as its tracks knew them before this frame,
+        // so the two cameras are measured at once, one core each.
+        let column = |c: usize| -> Vec<Option<Shape>> { shapes.iter().map(|s| s[c]).collect() };
+        let (mut own_left, mut own_right) = (column(0), column(1));
+        let (other_left, other_right) = (own_right.clone(), own_left.clone());
+        let [shake_left, shake_right] = &mut self.shake;
+        let [(image_left, camera_left, detections_left), (image_right, camera_right, detections_right)] =
+            cameras;
+        let (measured_left, measured_right) = rayon::join(
+            || {
+                let seen = seen_by(camera_left, detections_left);
+                shake_left.measure(image_left, &seen, &wanted_left, &mut own_left, &other_left)
+            },
+            || {
+                let seen = seen_by(camera_right, detections_right);
+                shake_right.measure(
+                    image_right,
+                    &seen,
+                    &wanted_right,
+                    &mut own_right,
+                    &other_right,
+                )
+            },
+        );
+        for (k, s) in shapes.iter_mut().enumerate() {
+            *s = [own_left[k], own_right[k]];
         }
+        let measured: Vec<[Measured; 2]> = measured_left
+            .into_iter()
+            .zip(measured_right)
+            .map(|(l, r)| [l, r])
+            .collect();
         for (&k, s) in keys.iter().zip(shapes) {
             self.tracks.set_shapes(k, s);
         }

@@ -7,7 +7,11 @@
 //! position (the reason a cut's centroids are not measured); with the widths known, the
 //! centres are pinned.
 
+mod group;
+
 use nalgebra::{DMatrix, DVector};
+
+use group::{members_of, Group};
 
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
@@ -87,6 +91,7 @@ struct Member {
 struct Fitted {
     members: Vec<Member>,
     rms: f64,
+    floor: f64,
 }
 
 /// The shape of a particle standing alone at `at` (equivalent diameter `diameter_px`), and
@@ -122,11 +127,7 @@ pub(crate) fn learn_shape(
 /// learnt (only centres and amplitudes free): the members as fitted, in order, and the RMS
 /// residual; `None` where the fit fails.
 fn refit(image: ImageView<'_>, seeds: &[Member]) -> Option<Fitted> {
-    let reach: Vec<(PixelPoint, f64)> = seeds
-        .iter()
-        .map(|m| (m.at, m.shape.radius_px + MARGIN_PX))
-        .collect();
-    let samples = window(image, &reach);
+    let samples = window(image, &boxes(seeds));
     fit(&samples, seeds, Free::GuessedRadius)
 }
 
@@ -224,7 +225,11 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
         }
     }
     let rms = (cost / samples.len() as f64).sqrt();
-    Some(Fitted { members, rms })
+    Some(Fitted {
+        members,
+        rms,
+        floor: params[0],
+    })
 }
 
 /// `J^T J`, `J^T r` and the sum of squared residuals of the model (`floor` plus the members'
@@ -419,14 +424,6 @@ impl Neighbourhood {
     }
 }
 
-/// One camera's particles as fit members: per detection, the track's member that claimed it
-/// (with whether the detection is clear); per wanted particle without a detection, its member
-/// at its prediction.
-struct Members {
-    claimed: Vec<Option<(Member, bool)>>,
-    hidden: Vec<Option<Member>>,
-}
-
 impl CameraShake {
     /// One camera's predicted particles measured. Each one standing alone (clear, and no
     /// other detection within reach) teaches its track's shape (where the track has none, or
@@ -458,27 +455,17 @@ impl CameraShake {
             return wanted.iter().map(unmeasured).collect();
         };
         let members = members_of(seen, wanted, shapes, other_camera);
-        let hidden_grid = PointGrid::new(
-            wanted
-                .iter()
-                .enumerate()
-                .filter(|(k, _)| members.hidden[*k].is_some())
-                .map(|(k, w)| (w.predicted_rect, k)),
-            GRID_CELL_PX,
+        let group = Group::new(
+            (image, seen, wanted),
+            &members,
+            &near,
+            (edge_px, widest_px, MAX_RESIDUAL_RATIO * lone_rms),
         );
-        let group = Group {
-            image,
-            seen,
-            wanted,
-            members: &members,
-            near: &near,
-            hidden_grid: &hidden_grid,
-            edge_px,
-            widest_px,
-            max_rms: MAX_RESIDUAL_RATIO * lone_rms,
-        };
-        (0..wanted.len())
-            .map(|k| group.measure(k).unwrap_or_else(|| unmeasured(&wanted[k])))
+        group
+            .measure_all()
+            .into_iter()
+            .zip(wanted)
+            .map(|(m, w)| m.unwrap_or_else(|| unmeasured(w)))
             .collect()
     }
 
@@ -603,195 +590,12 @@ impl Learnt {
     }
 }
 
-/// Every wanted particle's member, where its track knows its shape (`shapes`, or
-/// `other_camera`'s): claimed detections seeded at their centroid if clear, else at the
-/// prediction; particles without a detection at their prediction.
-fn members_of(
-    seen: &[Seen],
-    wanted: &[Wanted],
-    shapes: &[Option<Shape>],
-    other_camera: &[Option<Shape>],
-) -> Members {
-    let mut members = Members {
-        claimed: vec![None; seen.len()],
-        hidden: vec![None; wanted.len()],
-    };
-    for (k, w) in wanted.iter().enumerate() {
-        let Some(shape) = best_known(shapes[k], other_camera[k]) else {
-            continue;
-        };
-        match w.detection {
-            Some(i) => {
-                let clear = seen[i].clear;
-                let at = match w.predicted_px {
-                    Some(p) if !clear => p,
-                    _ => seen[i].centroid,
-                };
-                members.claimed[i] = Some((Member { at, shape }, clear));
-            }
-            None => members.hidden[k] = w.predicted_px.map(|at| Member { at, shape }),
-        }
-    }
+/// Each member's box (centre, half-width) a fit sees.
+fn boxes(members: &[Member]) -> Vec<(PixelPoint, f64)> {
     members
-}
-
-/// One camera's particles, as a wanted particle's group fit sees them.
-struct Group<'a> {
-    image: ImageView<'a>,
-    seen: &'a [Seen],
-    wanted: &'a [Wanted],
-    members: &'a Members,
-    near: &'a Neighbourhood,
-    hidden_grid: &'a PointGrid,
-    edge_px: f64,
-    widest_px: f64,
-    max_rms: f64,
-}
-
-impl Group<'_> {
-    /// Wanted particle `k` measured among its neighbours; `None` where it is not fitted (no
-    /// shape known, a clear detection with no hidden particle near, or a fit that fails).
-    fn measure(&self, k: usize) -> Option<Measured> {
-        let w = &self.wanted[k];
-        let (own, clear, c) = match w.detection {
-            Some(i) => {
-                let (own, clear) = self.members.claimed[i]?;
-                (own, clear, self.seen[i].rect)
-            }
-            None => {
-                let own = self.members.hidden[k]?;
-                if !within(self.image, own.at, own.shape.reach_px()) {
-                    return None;
-                }
-                (own, false, w.predicted_rect)
-            }
-        };
-        let (mut members, unknown, hidden) = self.neighbours(k, own, c);
-        if clear && hidden.is_empty() {
-            return None;
-        }
-        // The own particle may vanish where it has no detection: the fit then tells it is gone.
-        let may_vanish = |i: usize| {
-            if i == 0 {
-                w.detection.is_none()
-            } else {
-                hidden.contains(&i)
-            }
-        };
-        // A fit that measures where a detected particle is may leave each member's mismatch
-        // (their residuals add); one that decides whether an undetected particle is there at
-        // all is held to what a group of lone particles leaves, or a track (a ghost's among
-        // them) would go on with its neighbours' light.
-        let max_rms = |members: &[Member]| match w.detection {
-            Some(_) => self.max_rms * (members.len() as f64).sqrt(),
-            None => self.max_rms,
-        };
-        let good = |members: &[Member]| {
-            refit(self.image, members)
-                .filter(|f| f.rms <= max_rms(members) && stayed(f, members, may_vanish))
-        };
-        // The tracked particles' models first; detections no track knows join only where
-        // those do not explain the pixels (most are fragments of a tracked particle's image).
-        let mut fitted = good(&members);
-        if fitted.is_none() && !unknown.is_empty() {
-            members.extend(unknown);
-            fitted = good(&members);
-        }
-        let fitted = fitted?;
-        let at = fitted.members[0].at;
-        if w.detection.is_some() {
-            return Some(Measured::Refitted(at));
-        }
-        let a = fitted.members[0].shape.amplitude;
-        let moved = (at.x - own.at.x).hypot(at.y - own.at.y);
-        let apart = fitted.members[1..]
-            .iter()
-            .all(|m| (m.at.x - at.x).hypot(m.at.y - at.y) >= 0.5 * own.shape.radius_px);
-        let bright =
-            (own.shape.guessed || a >= 0.5 * own.shape.amplitude) && a >= 3.0 * self.max_rms;
-        Some(if apart && bright && moved <= own.shape.radius_px {
-            Measured::Refitted(at)
-        } else {
-            Measured::Missing
-        })
-    }
-
-    /// Wanted particle `k`'s fit group, `own` first (rectified centre `c`): the tracked
-    /// particles whose images may touch its own (at their detections, or where their tracks
-    /// put them); apart, the detections no track claimed that may touch it, as guessed discs;
-    /// and where in the group the particles without a detection are.
-    fn neighbours(
-        &self,
-        k: usize,
-        own: Member,
-        c: RectPoint,
-    ) -> (Vec<Member>, Vec<Member>, Vec<usize>) {
-        // The fit sees a box of half-width radius + margin around the particle's centre.
-        let reach = (own.shape.radius_px + MARGIN_PX) * std::f64::consts::SQRT_2;
-        let own_detection = self.wanted[k].detection;
-        let touches = |p: RectPoint, other: &Member| {
-            (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
-        };
-        let (mut tracked, mut unknown) = (vec![own], Vec::new());
-        for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
-            let other = match self.members.claimed[j] {
-                _ if Some(j) == own_detection => continue,
-                Some((m, _)) => m,
-                None => {
-                    let m = guessed(self.image, &self.seen[j], self.edge_px, self.widest_px);
-                    if touches(p, &m) {
-                        unknown.push(m);
-                    }
-                    continue;
-                }
-            };
-            if touches(p, &other) {
-                tracked.push(other);
-            }
-        }
-        let mut hidden = Vec::new();
-        for &(p, j) in self.hidden_grid.near(c.x, c.y, reach + self.near.widest) {
-            match self.members.hidden[j] {
-                Some(m) if j != k && touches(p, &m) => {
-                    hidden.push(tracked.len());
-                    tracked.push(m);
-                }
-                _ => {}
-            }
-        }
-        (tracked, unknown, hidden)
-    }
-}
-
-/// Whether `at` is at least `margin` pixels inside the image.
-fn within(image: ImageView<'_>, at: PixelPoint, margin: f64) -> bool {
-    let inside = |c: f64, size: usize| c >= margin && c <= size as f64 - 1.0 - margin;
-    inside(at.x, image.width) && inside(at.y, image.height)
-}
-
-/// The shape to fit a particle with: its own in this camera, else the one its track learnt in
-/// the other camera (both see it from nearly the same distance), a learnt shape before a
-/// guessed one.
-fn best_known(own: Option<Shape>, other: Option<Shape>) -> Option<Shape> {
-    match (own, other) {
-        (Some(a), _) if !a.guessed => Some(a),
-        (_, Some(b)) if !b.guessed => Some(b),
-        (a, b) => a.or(b),
-    }
-}
-
-/// A detection no track knows, as a fit member: a disc of its diameter (at most `widest_px`
-/// in radius) with the camera's edge, at its centroid.
-fn guessed(image: ImageView<'_>, s: &Seen, edge_px: f64, widest_px: f64) -> Member {
-    Member {
-        at: s.centroid,
-        shape: Shape {
-            radius_px: (0.5 * s.diameter_px).min(widest_px),
-            edge_px,
-            amplitude: image.bilinear(s.centroid).max(1.0),
-            guessed: true,
-        },
-    }
+        .iter()
+        .map(|m| (m.at, m.shape.radius_px + MARGIN_PX))
+        .collect()
 }
 
 #[cfg(test)]
@@ -980,6 +784,44 @@ mod tests {
     }
 
     #[test]
+    fn a_row_of_overlapping_particles_is_fitted_together_and_each_pinned() {
+        // Three cut detections in a row: the first and last groups share the middle particle,
+        // so all three are one fit.
+        let truth = [disc(14.3, 15.6), disc(18.4, 16.1), disc(22.6, 15.2)];
+        let pixels = draw(38, 30, &truth);
+        let image = ImageView::new(38, 30, &pixels).expect("sized");
+        let seen: Vec<Seen> = [at(14.0, 15.8), at(18.5, 16.0), at(22.9, 15.4)]
+            .iter()
+            .map(|&c| Seen {
+                centroid: c,
+                diameter_px: 5.0,
+                clear: false,
+                rect: RectPoint { x: c.x, y: c.y },
+            })
+            .collect();
+        let wanted: Vec<Wanted> = [at(14.8, 15.1), at(17.9, 16.6), at(23.2, 14.7)]
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| Wanted {
+                detection: Some(i),
+                predicted_px: Some(p),
+                predicted_rect: RectPoint { x: p.x, y: p.y },
+                disparity_px: 10.0,
+                relearn: false,
+            })
+            .collect();
+        let mut shapes = truth.map(|t| Some(t.shape));
+        let measured =
+            learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None, None]);
+        for (m, t) in measured.iter().zip(&truth) {
+            let Measured::Refitted(c) = m else {
+                panic!("{measured:?}");
+            };
+            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
+        }
+    }
+
+    #[test]
     fn a_track_whose_particle_is_gone_finds_nothing_in_its_neighbours_image() {
         let measured = merged(false);
         assert_eq!(measured[1], Measured::Missing, "{measured:?}");
@@ -1014,6 +856,6 @@ mod tests {
             clear: true,
             rect: RectPoint { x: 30.0, y: 20.0 },
         };
-        assert_eq!(guessed(image, &blob, 0.6, 3.0).shape.radius_px, 3.0);
+        assert_eq!(group::guessed(image, &blob, 0.6, 3.0).shape.radius_px, 3.0);
     }
 }
