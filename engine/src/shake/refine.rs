@@ -65,18 +65,29 @@ impl Shape {
 /// member and iteration. Linear interpolation on steps of 1/32 is within 2e-5 of the exact
 /// value; beyond +-20 the step is flat to 2e-9.
 fn logistic(z: f64) -> f64 {
-    const STEPS_PER_UNIT: f64 = 32.0;
-    const REACH: f64 = 20.0;
+    logistic_in(logistic_table(), z)
+}
+
+const STEPS_PER_UNIT: f64 = 32.0;
+const REACH: f64 = 20.0;
+
+/// The logistic step's table, on steps of 1 / [`STEPS_PER_UNIT`] over +-[`REACH`].
+fn logistic_table() -> &'static [f64] {
     static TABLE: std::sync::LazyLock<Vec<f64>> = std::sync::LazyLock::new(|| {
         let n = (2.0 * REACH * STEPS_PER_UNIT) as usize;
         (0..=n + 1)
             .map(|i| 1.0 / (1.0 + (i as f64 / STEPS_PER_UNIT - REACH).exp()))
             .collect()
     });
+    &TABLE
+}
+
+/// [`logistic`] with its table ([`logistic_table`]) at hand: a fit looks the table up once.
+fn logistic_in(table: &[f64], z: f64) -> f64 {
     let u = (z.clamp(-REACH, REACH) + REACH) * STEPS_PER_UNIT;
     let i = u as usize;
     let f = u - i as f64;
-    TABLE[i] * (1.0 - f) + TABLE[i + 1] * f
+    table[i] * (1.0 - f) + table[i + 1] * f
 }
 
 /// A particle in a fit: its centre and shape (a fit that learns may change the shape's radius
@@ -232,6 +243,69 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     })
 }
 
+/// A member as a fit iteration evaluates it: its centre, the square of its reach, its
+/// amplitude, radius and inverse edge width, its first unknown, and whether its radius is free.
+struct InFit {
+    at: PixelPoint,
+    reach_sq: f64,
+    amplitude: f64,
+    radius_px: f64,
+    per_edge: f64,
+    first: usize,
+    radius_free: bool,
+}
+
+impl InFit {
+    fn new(m: &Member, first: usize, free: Free) -> Self {
+        let reach = m.shape.reach_px() + MARGIN_PX;
+        Self {
+            at: m.at,
+            reach_sq: reach * reach,
+            amplitude: m.shape.amplitude,
+            radius_px: m.shape.radius_px,
+            per_edge: 1.0 / m.shape.edge_px,
+            first,
+            radius_free: free == Free::GuessedRadius && m.shape.guessed,
+        }
+    }
+
+    /// This member's light at pixel `(x, y)` (none beyond its reach), its derivatives pushed
+    /// onto the pixel's Jacobian `row`.
+    fn add(
+        &self,
+        table: &[f64],
+        (x, y): (f64, f64),
+        free: Free,
+        row: &mut Vec<(usize, f64)>,
+    ) -> f64 {
+        let (dx, dy) = (x - self.at.x, y - self.at.y);
+        let r_sq = dx * dx + dy * dy;
+        if r_sq > self.reach_sq {
+            return 0.0;
+        }
+        let (a, j) = (self.amplitude, self.first);
+        let r = r_sq.sqrt();
+        let z = (r - self.radius_px) * self.per_edge;
+        let g = logistic_in(table, z);
+        let dg_dz = -g * (1.0 - g);
+        let dg_dr = dg_dz * self.per_edge;
+        if r > 1e-9 {
+            // r grows as the centre moves away from the pixel.
+            let along = -a * dg_dr / r;
+            row.push((j, along * dx));
+            row.push((j + 1, along * dy));
+        }
+        row.push((j + 2, g));
+        if free == Free::Shape {
+            row.push((j + 3, -a * dg_dr));
+            row.push((j + 4, -a * dg_dz * z * self.per_edge));
+        } else if self.radius_free {
+            row.push((j + 3, -a * dg_dr));
+        }
+        a * g
+    }
+}
+
 /// `J^T J`, `J^T r` and the sum of squared residuals of the model (`floor` plus the members'
 /// discs but those `gone`) over `samples`; per member the unknowns are x, y, amplitude (and
 /// radius, edge).
@@ -246,7 +320,14 @@ fn normal_equations(
     let n = 1 + per * members.len();
     // Upper triangle only, accumulated flat; mirrored once at the end.
     let mut upper = vec![0.0; n * n];
-    let mut jtr = DVector::zeros(n);
+    let mut jtr = vec![0.0; n];
+    let table = logistic_table();
+    let in_fit: Vec<InFit> = members
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| !gone[*k])
+        .map(|(k, m)| InFit::new(m, 1 + per * k, free))
+        .collect();
     // Each pixel's Jacobian row is nonzero only for the floor and the members that reach it,
     // in increasing order of unknown.
     let mut row: Vec<(usize, f64)> = Vec::with_capacity(n);
@@ -255,35 +336,8 @@ fn normal_equations(
         row.clear();
         row.push((0, 1.0));
         let mut model = floor;
-        for (k, m) in members.iter().enumerate() {
-            if gone[k] {
-                continue;
-            }
-            let (dx, dy) = (x - m.at.x, y - m.at.y);
-            let reach = m.shape.reach_px() + MARGIN_PX;
-            let r_sq = dx * dx + dy * dy;
-            if r_sq > reach * reach {
-                continue;
-            }
-            let r = r_sq.sqrt();
-            let (g, dg_dr, dg_dradius, dg_dedge) = m.shape.profile(r);
-            let a = m.shape.amplitude;
-            model += a * g;
-            let j = 1 + per * k;
-            if r > 1e-9 {
-                // r grows as the centre moves away from the pixel.
-                row.push((j, -a * dg_dr * dx / r));
-                row.push((j + 1, -a * dg_dr * dy / r));
-            }
-            row.push((j + 2, g));
-            match free {
-                Free::Shape => {
-                    row.push((j + 3, a * dg_dradius));
-                    row.push((j + 4, a * dg_dedge));
-                }
-                Free::GuessedRadius if m.shape.guessed => row.push((j + 3, a * dg_dradius)),
-                Free::GuessedRadius => {}
-            }
+        for m in &in_fit {
+            model += m.add(table, (x, y), free, &mut row);
         }
         let residual = value - model;
         cost += residual * residual;
@@ -304,7 +358,7 @@ fn normal_equations(
             v
         }
     });
-    (jtj, jtr, cost)
+    (jtj, DVector::from_vec(jtr), cost)
 }
 
 /// The pixels (x, y, grey level) within `half` of any of the centres (a box), each once, but
