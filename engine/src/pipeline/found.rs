@@ -9,7 +9,7 @@
 
 use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
 use crate::detect::{Detection, Separation};
-use crate::geometry::{PixelPoint, RectPoint, Rectification};
+use crate::geometry::{RectPoint, Rectification};
 use crate::predict::Prediction;
 use crate::shake::refine::{self, Measured, Shape};
 use crate::shake::Shaken;
@@ -232,32 +232,29 @@ fn partial(
     p: &Prediction,
     rect: &Rectification,
 ) -> Option<[Spot; 2]> {
-    let disparity = p.left.x - p.right.x;
-    let hidden = |rect: RectPoint, px: Option<PixelPoint>| {
-        Some(Spot {
-            rect,
-            px: px?,
-            separation: Separation::Hidden,
-        })
+    let (seen, c) = match (left, right) {
+        (Some(l), Some(r)) => return Some([l, r]),
+        (Some(l), None) => (l, 0),
+        (None, Some(r)) => (r, 1),
+        (None, None) => return None,
     };
-    match (left, right) {
-        (Some(l), Some(r)) => Some([l, r]),
-        (Some(l), None) => {
-            let at = RectPoint {
-                x: l.rect.x - disparity,
-                ..l.rect
-            };
-            Some([l, hidden(at, rect.rect_to_right(at))?])
-        }
-        (None, Some(r)) => {
-            let at = RectPoint {
-                x: r.rect.x + disparity,
-                ..r.rect
-            };
-            Some([hidden(at, rect.rect_to_left(at))?, r])
-        }
-        (None, None) => None,
-    }
+    // The hidden view is on the same rectified row, the predicted disparity to the left of a
+    // left view (in the right image) or to the right of a right view (in the left image).
+    let disparity = p.left.x - p.right.x;
+    let at = RectPoint {
+        x: seen.rect.x + if c == 0 { -disparity } else { disparity },
+        ..seen.rect
+    };
+    let hidden = Spot {
+        rect: at,
+        px: rect.rect_to_pixel(1 - c, at)?,
+        separation: Separation::Hidden,
+    };
+    Some(if c == 0 {
+        [seen, hidden]
+    } else {
+        [hidden, seen]
+    })
 }
 
 /// Each camera's image, linked features and detections (left, right).
@@ -297,6 +294,7 @@ fn distance_sq(a: RectPoint, b: RectPoint) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::PixelPoint;
     use crate::synth::{Scenario, ScenarioSpec};
 
     fn spot(x: f64, y: f64) -> Spot {

@@ -154,7 +154,10 @@ pub(crate) fn predict<'a>(
             Some(p) => [Some(p), None],
             None => model_predictions(track, t_s),
         };
-        track.predictor.pending = Some((seq, models));
+        // A carried prediction is the neighbours' flow, not either model's: only its miss in
+        // the images is the track's (it sets the next gate).
+        let scored = if carried.is_some() { [None; 2] } else { models };
+        track.predictor.pending = Some((seq, scored));
         let Some(point_in_world) = models[track.predictor.followed()].or(models[LINE]) else {
             continue;
         };
