@@ -11,7 +11,7 @@ use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
 use crate::detect::{Detection, Separation};
 use crate::geometry::{RectPoint, Rectification};
 use crate::predict::Prediction;
-use crate::shake::refine::{self, Measured, Shape};
+use crate::shake::refine::{self, CameraShake, Measured, Shape};
 use crate::shake::Shaken;
 use crate::{ImageView, StereoFrame};
 
@@ -144,19 +144,30 @@ impl Pipeline {
         let column = |c: usize| -> Vec<Option<Shape>> { shapes.iter().map(|s| s[c]).collect() };
         let (mut own_left, mut own_right) = (column(0), column(1));
         let (other_left, other_right) = (own_right.clone(), own_left.clone());
+        let measure =
+            |shake: &mut CameraShake,
+             (image, camera, detections): (ImageView<'_>, &CameraOutput, &[Detection]),
+             wanted: &[refine::Wanted],
+             own: &mut [Option<Shape>],
+             other: &[Option<Shape>]| {
+                shake.measure(image, &seen_by(camera, detections), wanted, own, other)
+            };
         let [shake_left, shake_right] = &mut self.shake;
-        let [(image_left, camera_left, detections_left), (image_right, camera_right, detections_right)] =
-            cameras;
+        let [left_camera, right_camera] = cameras;
         let (measured_left, measured_right) = rayon::join(
             || {
-                let seen = seen_by(camera_left, detections_left);
-                shake_left.measure(image_left, &seen, &wanted_left, &mut own_left, &other_left)
+                measure(
+                    shake_left,
+                    left_camera,
+                    &wanted_left,
+                    &mut own_left,
+                    &other_left,
+                )
             },
             || {
-                let seen = seen_by(camera_right, detections_right);
-                shake_right.measure(
-                    image_right,
-                    &seen,
+                measure(
+                    shake_right,
+                    right_camera,
                     &wanted_right,
                     &mut own_right,
                     &other_right,

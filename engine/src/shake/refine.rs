@@ -49,23 +49,6 @@ impl Shape {
     fn reach_px(&self) -> f64 {
         self.radius_px + 3.0 * self.edge_px
     }
-
-    /// The height at distance `r` from the centre, per unit amplitude, and its derivative
-    /// with respect to `r`, radius and edge.
-    fn profile(&self, r: f64) -> (f64, f64, f64, f64) {
-        let z = (r - self.radius_px) / self.edge_px;
-        let g = logistic(z);
-        let dg_dz = -g * (1.0 - g);
-        let dg_dr = dg_dz / self.edge_px;
-        (g, dg_dr, -dg_dr, -dg_dz * z / self.edge_px)
-    }
-}
-
-/// The logistic step `1 / (1 + exp(z))`, from a table: fits evaluate it for every pixel,
-/// member and iteration. Linear interpolation on steps of 1/32 is within 2e-5 of the exact
-/// value; beyond +-20 the step is flat to 2e-9.
-fn logistic(z: f64) -> f64 {
-    logistic_in(logistic_table(), z)
 }
 
 const STEPS_PER_UNIT: f64 = 32.0;
@@ -82,7 +65,10 @@ fn logistic_table() -> &'static [f64] {
     &TABLE
 }
 
-/// [`logistic`] with its table ([`logistic_table`]) at hand: a fit looks the table up once.
+/// The logistic step `1 / (1 + exp(z))`, interpolated in `table` ([`logistic_table`], which a
+/// fit looks up once): fits evaluate it for every pixel, member and iteration. Linear
+/// interpolation on steps of 1/32 is within 2e-5 of the exact value; beyond +-20 the step is
+/// flat to 2e-9.
 fn logistic_in(table: &[f64], z: f64) -> f64 {
     let u = (z.clamp(-REACH, REACH) + REACH) * STEPS_PER_UNIT;
     let i = u as usize;
@@ -103,6 +89,25 @@ struct Fitted {
     members: Vec<Member>,
     rms: f64,
     floor: f64,
+}
+
+impl Fitted {
+    /// Each of `samples`' residual from the fitted model.
+    fn residuals(&self, samples: &[(f64, f64, f64)]) -> Vec<f64> {
+        let table = logistic_table();
+        let in_fit: Vec<InFit> = self
+            .members
+            .iter()
+            .map(|m| InFit::new(m, 0, Free::GuessedRadius))
+            .collect();
+        samples
+            .iter()
+            .map(|&(x, y, value)| {
+                let model: f64 = in_fit.iter().map(|m| m.light(table, (x, y))).sum();
+                value - self.floor - model
+            })
+            .collect()
+    }
 }
 
 /// The shape of a particle standing alone at `at` (equivalent diameter `diameter_px`), and
@@ -269,24 +274,31 @@ impl InFit {
         }
     }
 
-    /// This member's light at pixel `(x, y)` (none beyond its reach), its derivatives pushed
-    /// onto the pixel's Jacobian `row`.
-    fn add(
-        &self,
-        table: &[f64],
-        (x, y): (f64, f64),
-        free: Free,
-        row: &mut Vec<(usize, f64)>,
-    ) -> f64 {
+    /// Where pixel `(x, y)` lies from the centre (`dx`, `dy`, distance `r`, and `z`, the
+    /// distance past the radius in edge widths) and the disc's height there per unit
+    /// amplitude; `None` beyond its reach.
+    fn at(&self, table: &[f64], (x, y): (f64, f64)) -> Option<[f64; 5]> {
         let (dx, dy) = (x - self.at.x, y - self.at.y);
         let r_sq = dx * dx + dy * dy;
         if r_sq > self.reach_sq {
-            return 0.0;
+            return None;
         }
-        let (a, j) = (self.amplitude, self.first);
         let r = r_sq.sqrt();
         let z = (r - self.radius_px) * self.per_edge;
-        let g = logistic_in(table, z);
+        Some([dx, dy, r, z, logistic_in(table, z)])
+    }
+
+    /// This member's light at pixel `(x, y)` (none beyond its reach).
+    fn light(&self, table: &[f64], p: (f64, f64)) -> f64 {
+        self.at(table, p).map_or(0.0, |[.., g]| self.amplitude * g)
+    }
+
+    /// [`InFit::light`], its derivatives pushed onto the pixel's Jacobian `row`.
+    fn add(&self, table: &[f64], p: (f64, f64), free: Free, row: &mut Vec<(usize, f64)>) -> f64 {
+        let Some([dx, dy, r, z, g]) = self.at(table, p) else {
+            return 0.0;
+        };
+        let (a, j) = (self.amplitude, self.first);
         let dg_dz = -g * (1.0 - g);
         let dg_dr = dg_dz * self.per_edge;
         if r > 1e-9 {
@@ -656,6 +668,10 @@ fn boxes(members: &[Member]) -> Vec<(PixelPoint, f64)> {
 mod tests {
     use super::*;
 
+    fn logistic(z: f64) -> f64 {
+        logistic_in(logistic_table(), z)
+    }
+
     /// Discs drawn on a floor of 10 with a ramp, rounded to grey levels.
     fn draw(w: usize, h: usize, discs: &[Member]) -> Vec<u8> {
         (0..w * h)
@@ -663,7 +679,10 @@ mod tests {
                 let (x, y) = ((i % w) as f64, (i / w) as f64);
                 let v: f64 = discs
                     .iter()
-                    .map(|m| m.shape.amplitude * m.shape.profile((x - m.at.x).hypot(y - m.at.y)).0)
+                    .map(|m| {
+                        let r = (x - m.at.x).hypot(y - m.at.y);
+                        m.shape.amplitude * logistic((r - m.shape.radius_px) / m.shape.edge_px)
+                    })
                     .sum();
                 (10.0 + 0.1 * x + v).round().clamp(0.0, 255.0) as u8
             })

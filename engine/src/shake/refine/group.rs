@@ -178,7 +178,7 @@ impl<'a> Group<'a> {
         let Some(fitted) = fit(&samples, &seeds, Free::GuessedRadius) else {
             return Vec::new();
         };
-        let residuals = residuals(&samples, &fitted);
+        let residuals = fitted.residuals(&samples);
         group
             .iter()
             .map(|s| {
@@ -345,30 +345,6 @@ impl<'a> Group<'a> {
         }
         (tracked, ids, unknown, hidden)
     }
-}
-
-/// Each sample's residual from a fit's model.
-fn residuals(samples: &[(f64, f64, f64)], fitted: &Fitted) -> Vec<f64> {
-    samples
-        .iter()
-        .map(|&(x, y, value)| {
-            let model: f64 = fitted
-                .members
-                .iter()
-                .map(|m| {
-                    let (dx, dy) = (x - m.at.x, y - m.at.y);
-                    let reach = m.shape.reach_px() + MARGIN_PX;
-                    let r_sq = dx * dx + dy * dy;
-                    if r_sq > reach * reach {
-                        0.0
-                    } else {
-                        m.shape.amplitude * m.shape.profile(r_sq.sqrt()).0
-                    }
-                })
-                .sum();
-            value - fitted.floor - model
-        })
-        .collect()
 }
 
 /// Whether `at` is at least `margin` pixels inside the image.
