@@ -19,7 +19,7 @@ use nalgebra::{Isometry3, Point3};
 use crate::geometry::{RectPoint, Rectification};
 use crate::spatial::median;
 use crate::tracks::{Sample, Track3d};
-use crate::velocity::fit::{fit_line, fit_quadratic};
+use crate::velocity::fit::{fit_line, quadratic_position};
 
 mod neighbours;
 use neighbours::{Neighbours, YOUNG_SAMPLES};
@@ -196,9 +196,8 @@ pub(crate) fn predict<'a>(
 fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
     let line = fit_line(&newest(track, LINE_SAMPLES), t_s).map(|f| f.position);
     let quadratic = (track.samples.len() > LINE_SAMPLES)
-        .then(|| fit_quadratic(&newest(track, QUADRATIC_SAMPLES), t_s))
-        .flatten()
-        .map(|f| f.position);
+        .then(|| quadratic_position(&newest(track, QUADRATIC_SAMPLES), t_s))
+        .flatten();
     [line, quadratic]
 }
 

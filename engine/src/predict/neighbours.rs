@@ -128,8 +128,11 @@ impl Neighbours {
     /// The median velocity (per component) of the tracks `near`.
     fn median_velocity(&self, near: &[usize]) -> Vector3<f64> {
         let component = |c: usize| {
-            let mut values: Vec<f64> = near.iter().map(|&i| self.velocities[i][c]).collect();
-            median(&mut values)
+            let mut values = [0.0; NEIGHBOURS];
+            for (v, &i) in values.iter_mut().zip(near) {
+                *v = self.velocities[i][c];
+            }
+            median(&mut values[..near.len().min(NEIGHBOURS)])
         };
         Vector3::new(component(0), component(1), component(2))
     }

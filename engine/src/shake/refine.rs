@@ -111,21 +111,28 @@ impl Fitted {
 }
 
 /// The shape of a particle standing alone at `at` (equivalent diameter `diameter_px`), and
-/// the RMS residual the fit left; `None` where the fit fails or ends implausibly.
+/// the RMS residual the fit left; `None` where the fit fails or ends implausibly. A shape
+/// learnt before (`known`) starts the fit: the particle's image changes little from frame to
+/// frame, so the fit has little left to do.
 pub(crate) fn learn_shape(
     image: ImageView<'_>,
     at: PixelPoint,
     diameter_px: f64,
+    known: Option<Shape>,
 ) -> Option<(Shape, f64)> {
     let radius_px = (0.5 * diameter_px).max(0.5);
     let samples = window(image, &[(at, radius_px + 1.0 + MARGIN_PX)]);
     let low = samples.iter().map(|s| s.2).fold(f64::MAX, f64::min);
     let peak = image.bilinear(at) - low;
+    let (seed_radius, edge_px) = match known.filter(|k| !k.guessed) {
+        Some(k) => (k.radius_px, k.edge_px),
+        None => (radius_px, 0.5),
+    };
     let seed = Member {
         at,
         shape: Shape {
-            radius_px,
-            edge_px: 0.5,
+            radius_px: seed_radius,
+            edge_px,
             amplitude: peak.max(1.0),
             guessed: false,
         },
@@ -569,7 +576,7 @@ impl CameraShake {
                 // A lone blob the disc explains worse than the camera's lone particles are
                 // explained is not one particle (two merged, a streak): nothing to learn.
                 let learnt_now =
-                    learn_shape(image, s.centroid, s.diameter_px).filter(|(_, rms)| {
+                    learn_shape(image, s.centroid, s.diameter_px, *shape).filter(|(_, rms)| {
                         self.lone_rms
                             .is_none_or(|lone| *rms <= MAX_RESIDUAL_RATIO * lone)
                     });
@@ -717,10 +724,23 @@ mod tests {
         let pixels = draw(30, 25, &[truth]);
         let image = ImageView::new(30, 25, &pixels).expect("sized");
         let (shape, rms) =
-            learn_shape(image, PixelPoint { x: 15.0, y: 13.0 }, 6.0).expect("learnt");
+            learn_shape(image, PixelPoint { x: 15.0, y: 13.0 }, 6.0, None).expect("learnt");
         assert!((shape.radius_px - 3.0).abs() < 0.05, "{shape:?}");
         assert!((shape.edge_px - 0.6).abs() < 0.05, "{shape:?}");
         assert!(rms < 1.0, "{rms}");
+        // Learnt again from a shape learnt earlier, when the particle was a little nearer.
+        let earlier = Shape {
+            radius_px: 3.4,
+            edge_px: 0.5,
+            ..shape
+        };
+        let (again, _) = learn_shape(image, PixelPoint { x: 15.0, y: 13.0 }, 6.0, Some(earlier))
+            .expect("learnt");
+        assert!(
+            (again.radius_px - shape.radius_px).abs() < 1e-3,
+            "{again:?}"
+        );
+        assert!((again.edge_px - shape.edge_px).abs() < 1e-3, "{again:?}");
     }
 
     #[test]

@@ -6,7 +6,7 @@
 //! Beyond the method, [`fit_adaptive`] chooses each component's fit from the track's own
 //! residuals: a quadratic over a narrower window, a cubic, or a line reaching into the past.
 
-use nalgebra::{DMatrix, Point3, Vector3};
+use nalgebra::{DMatrix, Matrix3, Point3, Vector3};
 
 use super::uncertainty::{ComponentBudget, QuantityBudget, UncertaintyBudget};
 
@@ -39,6 +39,33 @@ impl MotionFit {
 /// `None` with fewer than three samples or when the times cannot support a quadratic.
 pub fn fit_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<MotionFit> {
     PolynomialFit::new(samples, t_eval_s, 2)?.motion().finite()
+}
+
+/// Where a least-squares quadratic through `samples` puts the particle at `t_eval_s`: the
+/// position alone, as a prediction wants it ([`fit_quadratic`] also works out what its velocity
+/// is worth). `None` with fewer than three samples or when the times cannot support a quadratic.
+pub fn quadratic_position(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<Point3<f64>> {
+    if samples.len() < 3 {
+        return None;
+    }
+    let scale_s = samples
+        .iter()
+        .map(|(t, _)| (t - t_eval_s).abs())
+        .fold(0.0, f64::max);
+    if scale_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let (mut normal, mut moments) = (Matrix3::zeros(), Matrix3::zeros());
+    for (t, p) in samples {
+        let tau = (t - t_eval_s) / scale_s;
+        let row = Vector3::new(1.0, tau, tau * tau);
+        normal += row * row.transpose();
+        moments += row * p.coords.transpose();
+    }
+    // Row k of the solution: the coefficient of tau^k for x, y and z; tau is 0 at t_eval_s.
+    let coefficients = normal.try_inverse()? * moments;
+    let position = Point3::from(coefficients.row(0).transpose());
+    position.iter().all(|v| v.is_finite()).then_some(position)
 }
 
 /// A least-squares polynomial `sum c_k tau^k` with `tau = (t - t_eval) / scale_s`, with what the
@@ -610,6 +637,27 @@ mod tests {
     use super::*;
     use crate::velocity::uncertainty::ScenePrior;
     use proptest::prelude::*;
+
+    #[test]
+    fn a_predicted_quadratic_position_is_the_full_fits() {
+        let path = |t: f64| Point3::new(0.1 + 0.5 * t + 2.0 * t * t, -0.2 * t, 1.0 + 0.3 * t * t);
+        let mut rng = crate::synth::Rng::new(5);
+        let samples: Vec<(f64, Point3<f64>)> = (0..6)
+            .map(|k| {
+                let t = f64::from(k) / 30.0;
+                let noise = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 1e-3;
+                (t, path(t) + noise)
+            })
+            .collect();
+        // Ahead of the samples, as a prediction asks.
+        let t = 7.0 / 30.0;
+        let full = fit_quadratic(&samples, t).expect("fits").position;
+        let light = quadratic_position(&samples, t).expect("fits");
+        assert!((full - light).norm() < 1e-12, "{full} vs {light}");
+        assert!(quadratic_position(&samples[..2], t).is_none());
+        let same_time = [(0.1, path(0.1)); 3];
+        assert!(quadratic_position(&same_time, 0.1).is_none());
+    }
 
     /// The stated velocity and position sigmas of a quadratic and a line agree with the scatter
     /// of their estimates over many noisy draws of the same path (Monte Carlo, 4000 draws: the
