@@ -122,22 +122,7 @@ impl Pipeline {
             .map(|&k| self.tracks.relearns(k, RELEARN_SHAPE_SAMPLES))
             .collect();
         let cameras = cameras(frame, (left, right), out);
-        let wanted = |c: usize| -> Vec<refine::Wanted> {
-            looked
-                .iter()
-                .zip(&relearn)
-                .map(|(&(i, features), &relearn)| {
-                    let p = &predictions[i];
-                    refine::Wanted {
-                        detection: features[c],
-                        predicted_px: self.rectification.rect_to_pixel(c, p.at(c)),
-                        predicted_rect: p.at(c),
-                        disparity_px: p.left.x - p.right.x,
-                        relearn,
-                    }
-                })
-                .collect()
-        };
+        let wanted = |c: usize| wanted_in(c, &self.rectification, predictions, looked, &relearn);
         let (wanted_left, wanted_right) = (wanted(0), wanted(1));
         // Each camera borrows the other's shapes as its tracks knew them before this frame,
         // so the two cameras are measured at once, one core each.
@@ -266,6 +251,32 @@ fn partial(
     } else {
         [hidden, seen]
     })
+}
+
+/// What camera `c`'s shake looks for: each looked-for prediction (`looked`) with the feature
+/// it claimed there, where it is predicted, and whether its track learns its shape again
+/// (`relearn`, index for index with `looked`).
+fn wanted_in(
+    c: usize,
+    rect: &Rectification,
+    predictions: &[Prediction],
+    looked: &[Looked],
+    relearn: &[bool],
+) -> Vec<refine::Wanted> {
+    looked
+        .iter()
+        .zip(relearn)
+        .map(|(&(i, features), &relearn)| {
+            let p = &predictions[i];
+            refine::Wanted {
+                detection: features[c],
+                predicted_px: rect.rect_to_pixel(c, p.at(c)),
+                predicted_rect: p.at(c),
+                disparity_px: p.left.x - p.right.x,
+                relearn,
+            }
+        })
+        .collect()
 }
 
 /// Each camera's image, linked features and detections (left, right).

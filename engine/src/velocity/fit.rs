@@ -48,13 +48,7 @@ pub fn quadratic_position(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Opti
     if samples.len() < 3 {
         return None;
     }
-    let scale_s = samples
-        .iter()
-        .map(|(t, _)| (t - t_eval_s).abs())
-        .fold(0.0, f64::max);
-    if scale_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        return None;
-    }
+    let scale_s = time_scale(samples, t_eval_s)?;
     let (mut normal, mut moments) = (Matrix3::zeros(), Matrix3::zeros());
     for (t, p) in samples {
         let tau = (t - t_eval_s) / scale_s;
@@ -66,6 +60,16 @@ pub fn quadratic_position(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Opti
     let coefficients = normal.try_inverse()? * moments;
     let position = Point3::from(coefficients.row(0).transpose());
     position.iter().all(|v| v.is_finite()).then_some(position)
+}
+
+/// The polynomial fits' unit of time: the farthest sample from `t_eval_s`, seconds (every
+/// `tau` within +-1); `None` where every sample is at `t_eval_s` (or a time is not finite).
+fn time_scale(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<f64> {
+    let scale_s = samples
+        .iter()
+        .map(|(t, _)| (t - t_eval_s).abs())
+        .fold(0.0, f64::max);
+    (scale_s.partial_cmp(&0.0) == Some(std::cmp::Ordering::Greater)).then_some(scale_s)
 }
 
 /// A least-squares polynomial `sum c_k tau^k` with `tau = (t - t_eval) / scale_s`, with what the
@@ -91,13 +95,7 @@ impl PolynomialFit {
         if samples.len() < terms {
             return None;
         }
-        let scale_s = samples
-            .iter()
-            .map(|(t, _)| (t - t_eval_s).abs())
-            .fold(0.0, f64::max);
-        if scale_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return None;
-        }
+        let scale_s = time_scale(samples, t_eval_s)?;
         let design = DMatrix::from_fn(samples.len(), terms, |r, k| {
             ((samples[r].0 - t_eval_s) / scale_s).powi(k as i32)
         });
