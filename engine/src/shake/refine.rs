@@ -3,9 +3,9 @@
 //! soft-edged disc, `a / (1 + exp((r - radius) / edge))`, which is a blurred spot for a small
 //! radius and a sharp disc for a large one. Where the particle overlaps a neighbour, the group's
 //! pixels are fitted with every member's shape held at what its track learnt and only the
-//! centres and amplitudes free. A free fit of two overlapping images trades width against
-//! position (the reason a cut's centroids are not measured); with the widths known, the
-//! centres are pinned.
+//! centres and amplitudes free, on a sloped background. A free fit of two overlapping images
+//! trades width against position (the reason a cut's centroids are not measured); with the
+//! widths known, the centres are pinned.
 
 mod group;
 
@@ -88,7 +88,39 @@ struct Member {
 struct Fitted {
     members: Vec<Member>,
     rms: f64,
-    floor: f64,
+    floor: Floor,
+}
+
+/// The background under a fit: a level at the window's centre and its slope across it. A
+/// group's window is wider than a lone particle's, and the background's own gradient (uneven
+/// lighting, a room behind the particles) would otherwise stay in its residual.
+#[derive(Debug, Clone, Copy)]
+struct Floor {
+    level: f64,
+    slope: (f64, f64),
+    centre: (f64, f64),
+}
+
+/// The floor's unknowns: its level and its slope along x and y.
+const FLOOR_TERMS: usize = 3;
+
+impl Floor {
+    /// A flat floor at the samples' darkest level, about their mean position.
+    fn under(samples: &[(f64, f64, f64)]) -> Self {
+        let n = samples.len().max(1) as f64;
+        let (sx, sy) = samples
+            .iter()
+            .fold((0.0, 0.0), |(a, b), s| (a + s.0, b + s.1));
+        Self {
+            level: samples.iter().map(|s| s.2).fold(f64::MAX, f64::min),
+            slope: (0.0, 0.0),
+            centre: (sx / n, sy / n),
+        }
+    }
+
+    fn at(&self, (x, y): (f64, f64)) -> f64 {
+        self.level + self.slope.0 * (x - self.centre.0) + self.slope.1 * (y - self.centre.1)
+    }
 }
 
 impl Fitted {
@@ -104,7 +136,7 @@ impl Fitted {
             .iter()
             .map(|&(x, y, value)| {
                 let model: f64 = in_fit.iter().map(|m| m.light(table, (x, y))).sum();
-                value - self.floor - model
+                value - self.floor.at((x, y)) - model
             })
             .collect()
     }
@@ -191,32 +223,33 @@ impl Free {
 /// How far a fit may take a guessed radius from the guess, as factors.
 const GUESSED_RADIUS_RANGE: (f64, f64) = (0.7, 1.4);
 
-/// Gauss-Newton on a floor plus the members' discs, with `free` shape parameters.
+/// Gauss-Newton on a sloped floor plus the members' discs, with `free` shape parameters.
 fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitted> {
     let per = free.per_member();
-    let n = 1 + per * seeds.len();
+    let n = FLOOR_TERMS + per * seeds.len();
     if samples.len() <= 2 * n {
         return None;
     }
-    let floor = samples.iter().map(|s| s.2).fold(f64::MAX, f64::min);
+    let mut floor = Floor::under(samples);
     let mut members = seeds.to_vec();
-    let mut params = DVector::zeros(n);
-    params[0] = floor;
     let mut cost = f64::INFINITY;
     // A member pushed further than its reach from its seed has no light there: it is gone
     // (a particle that is not where its track put it), and leaves the fit.
     let mut gone = vec![false; seeds.len()];
     for _ in 0..MAX_ITERATIONS {
-        let (jtj, jtr, c) = normal_equations(samples, params[0], &members, &gone, free);
+        let (jtj, jtr, c) = normal_equations(samples, &floor, &members, &gone, free);
         cost = c;
         let step = jtj.cholesky()?.solve(&jtr);
-        params[0] += step[0];
+        floor.level += step[0];
+        floor.slope.0 += step[1];
+        floor.slope.1 += step[2];
         let mut moved: f64 = 0.0;
         for (k, m) in members.iter_mut().enumerate() {
             if gone[k] {
                 continue;
             }
-            let s = &step.as_slice()[1 + per * k..1 + per * (k + 1)];
+            let first = FLOOR_TERMS + per * k;
+            let s = &step.as_slice()[first..first + per];
             m.at.x += s[0];
             m.at.y += s[1];
             m.shape.amplitude += s[2];
@@ -251,7 +284,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     Some(Fitted {
         members,
         rms,
-        floor: params[0],
+        floor,
     })
 }
 
@@ -330,13 +363,13 @@ impl InFit {
 /// radius, edge).
 fn normal_equations(
     samples: &[(f64, f64, f64)],
-    floor: f64,
+    floor: &Floor,
     members: &[Member],
     gone: &[bool],
     free: Free,
 ) -> (DMatrix<f64>, DVector<f64>, f64) {
     let per = free.per_member();
-    let n = 1 + per * members.len();
+    let n = FLOOR_TERMS + per * members.len();
     // Upper triangle only, accumulated flat; mirrored once at the end.
     let mut upper = vec![0.0; n * n];
     let mut jtr = vec![0.0; n];
@@ -345,7 +378,7 @@ fn normal_equations(
         .iter()
         .enumerate()
         .filter(|(k, _)| !gone[*k])
-        .map(|(k, m)| InFit::new(m, 1 + per * k, free))
+        .map(|(k, m)| InFit::new(m, FLOOR_TERMS + per * k, free))
         .collect();
     // Each pixel's Jacobian row is nonzero only for the floor and the members that reach it,
     // in increasing order of unknown.
@@ -354,7 +387,9 @@ fn normal_equations(
     for &(x, y, value) in samples {
         row.clear();
         row.push((0, 1.0));
-        let mut model = floor;
+        row.push((1, x - floor.centre.0));
+        row.push((2, y - floor.centre.1));
+        let mut model = floor.at((x, y));
         for m in &in_fit {
             model += m.add(table, (x, y), free, &mut row);
         }
@@ -681,6 +716,11 @@ mod tests {
 
     /// Discs drawn on a floor of 10 with a ramp, rounded to grey levels.
     fn draw(w: usize, h: usize, discs: &[Member]) -> Vec<u8> {
+        draw_on(w, h, discs, (0.1, 0.0))
+    }
+
+    /// Discs drawn on a floor of 10 (at the origin) sloping by `slope` grey levels per pixel.
+    fn draw_on(w: usize, h: usize, discs: &[Member], slope: (f64, f64)) -> Vec<u8> {
         (0..w * h)
             .map(|i| {
                 let (x, y) = ((i % w) as f64, (i / w) as f64);
@@ -691,7 +731,9 @@ mod tests {
                         m.shape.amplitude * logistic((r - m.shape.radius_px) / m.shape.edge_px)
                     })
                     .sum();
-                (10.0 + 0.1 * x + v).round().clamp(0.0, 255.0) as u8
+                (10.0 + slope.0 * x + slope.1 * y + v)
+                    .round()
+                    .clamp(0.0, 255.0) as u8
             })
             .collect()
     }
@@ -749,6 +791,19 @@ mod tests {
         let pixels = draw(44, 30, &truth);
         let image = ImageView::new(44, 30, &pixels).expect("sized");
         // Seeded most of a pixel off each, the fit lands within a few hundredths of a pixel.
+        let seeds = [disc(21.0, 15.0), disc(23.6, 16.8)];
+        let fitted = refit(image, &seeds).expect("fits");
+        assert!(stayed(&fitted, &seeds, |_| false));
+        assert_pinned(&fitted, &truth);
+    }
+
+    #[test]
+    fn overlapping_particles_on_a_steeply_lit_background_are_pinned_where_they_are() {
+        // The background climbs 40 grey levels across the group's window: a flat floor would
+        // leave a residual of several grey levels and move the centres towards the light.
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let pixels = draw_on(44, 30, &truth, (2.5, -1.5));
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
         let seeds = [disc(21.0, 15.0), disc(23.6, 16.8)];
         let fitted = refit(image, &seeds).expect("fits");
         assert!(stayed(&fitted, &seeds, |_| false));
