@@ -196,7 +196,8 @@ pub enum Separation {
     Cut,
     /// Not seen at all: hidden in this image (behind a neighbour's image, an occluder or the
     /// image edge) while the other image shows it, and placed where its track predicts it
-    /// (track-first partial samples). Good for keeping the track, not for measuring.
+    /// (track-first partial samples). Measured across the other camera's line of sight where
+    /// that camera told it apart; along it, only predicted.
     Hidden,
 }
 

@@ -227,6 +227,15 @@ impl Rectification {
         })
     }
 
+    /// Camera `camera`'s centre (0 left, 1 right) in the rig frame: the left camera is its
+    /// origin, the right one `baseline_m` along the rectified x axis.
+    pub(crate) fn camera_in_rig(&self, camera: usize) -> Point3<f64> {
+        match camera {
+            0 => Point3::origin(),
+            _ => self.rect_from_left.inverse() * Point3::new(self.baseline_m, 0.0, 0.0),
+        }
+    }
+
     /// Standard deviation of depth caused by a disparity error of `disparity_sigma_px`.
     pub fn depth_sigma_m(&self, depth_m: f64, disparity_sigma_px: f64) -> f64 {
         depth_m * depth_m * disparity_sigma_px / (self.focal_px * self.baseline_m)

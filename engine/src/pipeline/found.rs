@@ -4,8 +4,8 @@
 //! themselves, fitted where its track puts it among its neighbours, and continues its track
 //! where both images show it on rows within the epipolar band. A particle one image shows and
 //! the other hides continues its track with a partial sample on the first image's line of sight
-//! at its predicted depth, for at most M frames in a row: good for keeping the track, not for
-//! measuring.
+//! at its predicted depth, for at most M frames in a row: measured across that line of sight,
+//! only predicted along it.
 
 use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
 use crate::detect::{Detection, Separation};

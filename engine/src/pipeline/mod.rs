@@ -16,7 +16,7 @@ use crate::predict::{self, Prediction};
 use crate::shake::refine::CameraShake;
 use crate::shake::{self, Shaken};
 use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoSearch};
-use crate::tracks::{Pair, Sample, Tracks};
+use crate::tracks::{Pair, Sample, Sight, Tracks};
 use crate::velocity::Velocities;
 use crate::{ImageView, StereoFrame};
 
@@ -423,6 +423,7 @@ impl Pipeline {
             separation: l.separation.max(r.separation),
             left_rect: l.rect,
             camera_in_world: world_from_rig * Point3::origin(),
+            seen_from: self.seen_from([l, r], &world_from_rig),
         };
         let point = MatchedPoint {
             track_id: 0,
@@ -432,6 +433,20 @@ impl Pipeline {
             depth_m: t.depth_m,
         };
         Some((sample, point))
+    }
+
+    /// For a particle one image hid and the other told apart (clear or fitted): the camera
+    /// that saw it, world frame.
+    fn seen_from(&self, spots: [Spot; 2], world_from_rig: &Isometry3<f64>) -> Option<Sight> {
+        let hidden = spots
+            .iter()
+            .position(|s| s.separation == Separation::Hidden)?;
+        let seen = 1 - hidden;
+        let separation = spots[seen].separation;
+        (separation <= Separation::Fitted).then(|| Sight {
+            camera_in_world: world_from_rig * self.rectification.camera_in_rig(seen),
+            separation,
+        })
     }
 }
 

@@ -232,6 +232,7 @@ mod tests {
                 separation: Separation::Clear,
                 left_rect: RectPoint::default(),
                 camera_in_world: Point3::origin(),
+                seen_from: None,
             })
             .collect::<VecDeque<_>>();
         Track3d {

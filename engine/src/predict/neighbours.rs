@@ -182,6 +182,7 @@ mod tests {
                         y: start.y * 1000.0,
                     },
                     camera_in_world: Point3::origin(),
+                    seen_from: None,
                 }
             })
             .collect::<VecDeque<_>>();

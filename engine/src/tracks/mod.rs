@@ -88,6 +88,18 @@ pub(crate) struct Sample {
     pub(crate) left_rect: RectPoint,
     /// The left camera's centre when it did: the line of sight, along which noise is largest.
     pub(crate) camera_in_world: Point3<f64>,
+    /// For a particle one camera hid ([`Separation::Hidden`]) and the other told apart: where
+    /// that one saw it from. Across its line of sight the sample is measured; along it, only
+    /// predicted.
+    pub(crate) seen_from: Option<Sight>,
+}
+
+/// The camera that alone saw a sample's particle: its centre (world frame) and how it told the
+/// particle apart from its neighbours.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Sight {
+    pub(crate) camera_in_world: Point3<f64>,
+    pub(crate) separation: Separation,
 }
 
 impl Sample {

@@ -6,7 +6,7 @@
 //! Beyond the method, [`fit_adaptive`] chooses each component's fit from the track's own
 //! residuals: a quadratic over a narrower window, a cubic, or a line reaching into the past.
 
-use nalgebra::{DMatrix, Matrix3, Point3, Vector3};
+use nalgebra::{DMatrix, Matrix3, Point3, SMatrix, SVector, Vector3};
 
 use super::uncertainty::{ComponentBudget, QuantityBudget, UncertaintyBudget};
 
@@ -257,6 +257,25 @@ impl QuadraticWindow {
         })
     }
 
+    /// [`Self::new`] where some samples are measured only across a line of sight (a particle
+    /// one camera hid: `sights[r]` is the centre of the camera that saw sample `r`; along its
+    /// line the sample is only predicted). The quadratic is the least-squares one to what the
+    /// samples measure ([`fill_along_sights`]); each such sample is then placed on its line
+    /// where that quadratic passes nearest, so the window's residuals and later fits see its
+    /// across-sight offset only. `None` where `new` would be, or where the samples seen by both
+    /// cameras cannot pin the quadratic along the lines of sight.
+    pub fn with_sights(
+        half_window_frames: usize,
+        mut samples: Vec<(f64, Point3<f64>)>,
+        sights: &[Option<Point3<f64>>],
+        t_eval_s: f64,
+    ) -> Option<Self> {
+        if sights.iter().any(Option::is_some) {
+            fill_along_sights(&mut samples, sights, t_eval_s)?;
+        }
+        Self::new(half_window_frames, samples, t_eval_s)
+    }
+
     /// Each sample's offset from the quadratic, in sample order.
     pub fn residuals(&self) -> impl Iterator<Item = Vector3<f64>> + '_ {
         self.quadratic
@@ -269,6 +288,63 @@ impl QuadraticWindow {
     pub fn motion(&self) -> Option<MotionFit> {
         self.quadratic.motion().finite()
     }
+}
+
+/// Places each sample measured only across a line of sight (`sights[r]`, the camera that saw
+/// it) where the least-squares quadratic passes nearest on its line. That quadratic weighs each
+/// such sample by the projection across its line (`I - u u^T`), the others fully: one 9 x 9
+/// solve for the three components' three coefficients together, as a line of sight couples
+/// them. An unweighted fit of the placed samples is the same quadratic (at it, each placed
+/// sample's residual is its across-sight one). `None` where the solve is singular.
+fn fill_along_sights(
+    samples: &mut [(f64, Point3<f64>)],
+    sights: &[Option<Point3<f64>>],
+    t_eval_s: f64,
+) -> Option<()> {
+    let scale_s = time_scale(samples, t_eval_s)?;
+    let terms = |t: f64| {
+        let tau = (t - t_eval_s) / scale_s;
+        [1.0, tau, tau * tau]
+    };
+    let (mut normal, mut rhs) = (SMatrix::<f64, 9, 9>::zeros(), SVector::<f64, 9>::zeros());
+    for ((t, p), sight) in samples.iter().zip(sights) {
+        let across = match sight {
+            Some(camera) => {
+                let u = (p - camera).try_normalize(1e-12)?;
+                Matrix3::identity() - u * u.transpose()
+            }
+            None => Matrix3::identity(),
+        };
+        let phi = terms(*t);
+        for k in 0..3 {
+            for l in 0..3 {
+                let block = across * (phi[k] * phi[l]);
+                let mut view = normal.fixed_view_mut::<3, 3>(3 * k, 3 * l);
+                view += block;
+            }
+            let mut rows = rhs.fixed_rows_mut::<3>(3 * k);
+            rows += across * p.coords * phi[k];
+        }
+    }
+    let coefficients = normal.cholesky()?.solve(&rhs);
+    for ((t, p), sight) in samples.iter_mut().zip(sights) {
+        if let Some(camera) = sight {
+            let phi = terms(*t);
+            let path = (0..3).fold(Vector3::zeros(), |q, k| {
+                q + coefficients.fixed_rows::<3>(3 * k) * phi[k]
+            });
+            *p = nearest_on_sight(camera, p, &Point3::from(path));
+        }
+    }
+    Some(())
+}
+
+/// The point on the line of sight from `camera` through `seen` nearest to `path`.
+fn nearest_on_sight(camera: &Point3<f64>, seen: &Point3<f64>, path: &Point3<f64>) -> Point3<f64> {
+    let Some(sight) = (seen - camera).try_normalize(1e-12) else {
+        return *seen;
+    };
+    camera + sight * (path - camera).dot(&sight)
 }
 
 /// The fit chosen for one velocity component.
@@ -655,6 +731,35 @@ mod tests {
         assert!(quadratic_position(&samples[..2], t).is_none());
         let same_time = [(0.1, path(0.1)); 3];
         assert!(quadratic_position(&same_time, 0.1).is_none());
+    }
+
+    #[test]
+    fn samples_seen_by_one_camera_count_across_its_line_of_sight_only() {
+        let path = |t: f64| Point3::new(0.02 + 0.5 * t + 2.0 * t * t, -0.2 * t, 0.5 + 0.3 * t);
+        let camera = Point3::new(0.1, 0.0, 0.0);
+        // Three of eleven samples hidden in one camera: on the other one's line of sight, but
+        // 3 cm off along it (where their tracks predicted them).
+        let hidden = [-4, -1, 3];
+        let (samples, sights): (Vec<_>, Vec<_>) = (-5..=5)
+            .map(|k| {
+                let t = f64::from(k) / 30.0;
+                let p = path(t);
+                if hidden.contains(&k) {
+                    let off = (p - camera).normalize() * 0.03;
+                    ((t, p + off), Some(camera))
+                } else {
+                    ((t, p), None)
+                }
+            })
+            .unzip();
+        let truth = Vector3::new(0.5, -0.2, 0.3);
+        let window = QuadraticWindow::with_sights(5, samples.clone(), &sights, 0.0).expect("fits");
+        let error = (window.motion().expect("finite").velocity - truth).norm();
+        assert!(error < 1e-9 * truth.norm(), "{error}");
+        // Taken as measured where they were placed, they pull the velocity off.
+        let naive = QuadraticWindow::new(5, samples, 0.0).expect("fits");
+        let naive_error = (naive.motion().expect("finite").velocity - truth).norm();
+        assert!(naive_error > 0.02 * truth.norm(), "{naive_error}");
     }
 
     /// The stated velocity and position sigmas of a quadratic and a line agree with the scatter

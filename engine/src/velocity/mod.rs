@@ -3,6 +3,8 @@
 //! ([`fit`]), each vector with its 1-sigma errors ([`uncertainty`]), and vectors that stray
 //! from their neighbours dropped ([`outliers`]).
 
+use std::cmp::Ordering;
+
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -497,7 +499,7 @@ impl Velocities {
             track
                 .samples
                 .iter()
-                .filter(move |s| s.separation <= worst && s.seq.abs_diff(centre_seq) <= w)
+                .filter(move |s| usable(s, worst) && s.seq.abs_diff(centre_seq) <= w)
         };
         // Fitted samples enter full windows only: in a narrowed one the few samples cannot show
         // a fit that swapped two crossing particles.
@@ -512,8 +514,7 @@ impl Velocities {
         let mut windows = Vec::new();
         let mut any_supported = false;
         for w in narrowest..=m {
-            let before = usable_within(w).filter(|s| s.seq < centre_seq).count() as u64;
-            let after = usable_within(w).filter(|s| s.seq > centre_seq).count() as u64;
+            let samples: Vec<&Sample> = usable_within(w).collect();
             // A narrowed window is complete: it has few samples to spare, and a quadratic through
             // three or four of them says nothing about the track's smoothness.
             let needed = if w < m {
@@ -522,14 +523,12 @@ impl Velocities {
                 w.saturating_sub(velocity.max_missing_per_side as u64)
                     .max(1)
             };
-            if before < needed || after < needed {
+            if !Self::fills(&samples, centre_seq, [needed; 2], w.saturating_sub(needed)) {
                 continue;
             }
             any_supported = true;
-            let samples: Vec<&Sample> = usable_within(w).collect();
-            let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
             // Ill-posed only without distinct sample times, which the counts above exclude.
-            let Some(window) = QuadraticWindow::new(w as usize, points, centre.t_s) else {
+            let Some(window) = fit_window(w as usize, &samples, centre.t_s) else {
                 continue;
             };
             if self.is_rough(&samples, &window, centre.depth_m) {
@@ -538,6 +537,24 @@ impl Velocities {
             windows.push(window);
         }
         (windows, any_supported)
+    }
+
+    /// Whether a window's samples fill it: `needed` samples before and after the centre, of
+    /// which at most `allowance` (the frames the window may miss in both images) seen by one
+    /// camera only (a frame missing in one image is worth more than one missing in both, but
+    /// its depth is not measured), and its depth measured ([`depth_measured`]).
+    fn fills(samples: &[&Sample], centre_seq: u64, needed: [u64; 2], allowance: u64) -> bool {
+        let count = |side: Ordering, by_both: bool| {
+            samples
+                .iter()
+                .filter(|s| s.seq.cmp(&centre_seq) == side && (!by_both || s.seen_from.is_none()))
+                .count() as u64
+        };
+        [Ordering::Less, Ordering::Greater]
+            .into_iter()
+            .zip(needed)
+            .all(|(side, n)| count(side, false) >= n && count(side, true) + allowance >= n)
+            && depth_measured(samples, centre_seq)
     }
 
     /// The window for a line reaching `line_past_frames` before `centre` and M after it, where
@@ -560,17 +577,22 @@ impl Velocities {
             .samples
             .iter()
             .filter(|s| {
-                s.separation <= worst
+                usable(s, worst)
                     && s.seq + past as u64 >= centre.seq
                     && s.seq <= centre.seq + m as u64
             })
             .collect();
-        let before = samples.iter().filter(|s| s.seq < centre.seq).count();
-        if before + velocity.max_missing_per_side < past {
+        let missing = velocity.max_missing_per_side;
+        let needed = [past.saturating_sub(missing), m.saturating_sub(missing)];
+        if !Self::fills(
+            &samples,
+            centre.seq,
+            needed.map(|n| n as u64),
+            missing as u64,
+        ) {
             return None;
         }
-        let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
-        let window = QuadraticWindow::new(m, points, centre.t_s)?;
+        let window = fit_window(m, &samples, centre.t_s)?;
         (!self.is_rough(&samples, &window, centre.depth_m)).then_some(window)
     }
 
@@ -597,6 +619,38 @@ impl Velocities {
             m
         }
     }
+}
+
+/// Whether a sample enters fits whose samples are separated at least as well as `worst`: one
+/// both cameras measured that well, or one only the camera that saw it measured that well
+/// (across its line of sight).
+fn usable(s: &Sample, worst: Separation) -> bool {
+    s.separation <= worst || s.seen_from.is_some_and(|v| v.separation <= worst)
+}
+
+/// Whether a window's samples measure its depth: a quadratic's worth of samples seen by both
+/// cameras, at least one each side of the centre (or at it), so the samples seen by one
+/// camera only fill in between rather than extrapolate.
+fn depth_measured(samples: &[&Sample], centre_seq: u64) -> bool {
+    let both = || samples.iter().filter(|s| s.seen_from.is_none());
+    both().count() >= 3
+        && both().any(|s| s.seq <= centre_seq)
+        && both().any(|s| s.seq >= centre_seq)
+}
+
+/// A window's quadratic, the samples one camera hid measured across the other's line of
+/// sight only ([`QuadraticWindow::with_sights`]).
+fn fit_window(
+    half_window_frames: usize,
+    samples: &[&Sample],
+    t_eval_s: f64,
+) -> Option<QuadraticWindow> {
+    let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+    let sights: Vec<_> = samples
+        .iter()
+        .map(|s| s.seen_from.map(|v| v.camera_in_world))
+        .collect();
+    QuadraticWindow::with_sights(half_window_frames, points, &sights, t_eval_s)
 }
 
 /// The vector a fit gives for `track` at `sample`, its sigmas from the fit and the scene prior.
@@ -628,4 +682,66 @@ fn outliers_among<'a>(
         .map(|v| (v.position_in_world, v.velocity_in_world))
         .collect();
     neighbour_outliers(&vectors, test)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::RectPoint;
+    use crate::synth::{Scenario, ScenarioSpec};
+    use crate::tracks::Sight;
+
+    /// Eleven frames of a particle moving at 0.1 m/s along x half a metre from the left
+    /// camera: seen by both cameras but in frames `hidden` (seen by the left one only, and
+    /// placed 1 cm off along its line of sight) and `missing` (seen by neither).
+    fn track(hidden: &[u64], missing: &[u64]) -> Track3d {
+        let path = |t: f64| Point3::new(-0.02 + 0.1 * t, 0.01, 0.5);
+        let samples = (1..=11)
+            .filter(|seq| !missing.contains(seq))
+            .map(|seq| {
+                let t_s = seq as f64 / 30.0;
+                let mut sample = Sample {
+                    seq,
+                    frame_index: seq,
+                    t_s,
+                    point_in_world: path(t_s),
+                    depth_m: 0.5,
+                    separation: Separation::Clear,
+                    left_rect: RectPoint::default(),
+                    camera_in_world: Point3::origin(),
+                    seen_from: None,
+                };
+                if hidden.contains(&seq) {
+                    sample.point_in_world += path(t_s).coords.normalize() * 0.01;
+                    sample.separation = Separation::Hidden;
+                    sample.seen_from = Some(Sight {
+                        camera_in_world: Point3::origin(),
+                        separation: Separation::Clear,
+                    });
+                }
+                sample
+            })
+            .collect();
+        Track3d {
+            samples,
+            ..Track3d::new(1, 1)
+        }
+    }
+
+    #[test]
+    fn frames_one_camera_hid_fill_a_window_as_far_as_the_allowance_goes() {
+        let rect = Rectification::new(&ScenarioSpec::new(Scenario::Flume).rig).expect("rectifies");
+        let velocities = Velocities::new(&VelocityConfig::default(), &rect, 640, 480);
+        let at_centre = |t: &Track3d| velocities.centred_vector(t, 11).map(Result::ok);
+        // Two frames hidden before the centre (one more than may be missing) still measure
+        // the velocity, exactly: across the line of sight they are measured.
+        let v = at_centre(&track(&[2, 4], &[])).flatten().expect("a vector");
+        let error = (v.vector.velocity_in_world - Vector3::new(0.1, 0.0, 0.0)).norm();
+        assert!(error < 1e-9, "{error}");
+        // Three hidden, or two missing in both images, are more than one side may lack.
+        assert!(at_centre(&track(&[2, 3, 4], &[])).is_none());
+        assert!(at_centre(&track(&[], &[2, 4])).is_none());
+        // One missing and one hidden is within the allowance.
+        assert!(at_centre(&track(&[4], &[2])).flatten().is_some());
+    }
 }
