@@ -142,6 +142,21 @@ impl Fitted {
     }
 }
 
+/// The RMS of `residuals` (index for index with `samples`) over the samples within any of the
+/// boxes `own` (centre, half-width): what a fit leaves on some particles' pixels.
+fn rms_within(samples: &[(f64, f64, f64)], residuals: &[f64], own: &[(PixelPoint, f64)]) -> f64 {
+    let inside = |x: f64, y: f64| {
+        own.iter()
+            .any(|(c, half)| (x - c.x).abs() <= *half && (y - c.y).abs() <= *half)
+    };
+    let (sum, count) = samples
+        .iter()
+        .zip(residuals)
+        .filter(|(p, _)| inside(p.0, p.1))
+        .fold((0.0, 0usize), |(sum, n), (_, r)| (sum + r * r, n + 1));
+    (sum / count.max(1) as f64).sqrt()
+}
+
 /// The shape of a particle standing alone at `at` (equivalent diameter `diameter_px`), and
 /// the RMS residual the fit left; `None` where the fit fails or ends implausibly. A shape
 /// learnt before (`known`) starts the fit: the particle's image changes little from frame to
@@ -176,14 +191,6 @@ pub(crate) fn learn_shape(
         && m.shape.radius_px < 2.0 * radius_px + 1.0
         && (m.at.x - at.x).hypot(m.at.y - at.y) < radius_px;
     plausible.then_some((m.shape, fitted.rms))
-}
-
-/// Refits a group of overlapping particles, each seeded at `at` with the shape its track
-/// learnt (only centres and amplitudes free): the members as fitted, in order, and the RMS
-/// residual; `None` where the fit fails.
-fn refit(image: ImageView<'_>, seeds: &[Member]) -> Option<Fitted> {
-    let samples = window(image, &boxes(seeds));
-    fit(&samples, seeds, Free::GuessedRadius)
 }
 
 /// Whether every member of a group fit stayed within its radius of where it was seeded, but
@@ -710,6 +717,13 @@ fn boxes(members: &[Member]) -> Vec<(PixelPoint, f64)> {
 mod tests {
     use super::*;
 
+    /// A group of overlapping particles fitted, each seeded at `at` with the shape its track
+    /// learnt (only centres and amplitudes free).
+    fn refit(image: ImageView<'_>, seeds: &[Member]) -> Option<Fitted> {
+        let samples = window(image, &boxes(seeds));
+        fit(&samples, seeds, Free::GuessedRadius)
+    }
+
     fn logistic(z: f64) -> f64 {
         logistic_in(logistic_table(), z)
     }
@@ -916,6 +930,55 @@ mod tests {
             };
             assert!((c.x - t.x).hypot(c.y - t.y) < 0.05, "{c:?} vs {t:?}");
         }
+    }
+
+    #[test]
+    fn an_undetected_particle_is_judged_on_its_own_pixels() {
+        // The merged pair of `merged`, with a faint third particle no track knows touching the
+        // detected one from the other side: its light is in the group's window, not in the
+        // undetected particle's own pixels.
+        let faint = Member {
+            shape: Shape {
+                amplitude: 20.0,
+                ..disc(0.0, 0.0).shape
+            },
+            ..disc(14.0, 15.4)
+        };
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1), faint];
+        let pixels = draw(44, 30, &truth);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let blob = at(22.3, 15.8);
+        let seen = [Seen {
+            centroid: blob,
+            diameter_px: 10.0,
+            clear: false,
+            rect: RectPoint {
+                x: blob.x,
+                y: blob.y,
+            },
+        }];
+        let wanted = Wanted {
+            detection: None,
+            predicted_px: Some(at(23.8, 16.6)),
+            predicted_rect: RectPoint { x: 23.8, y: 16.6 },
+            disparity_px: 10.0,
+            relearn: false,
+        };
+        let wanted = [
+            Wanted {
+                detection: Some(0),
+                predicted_px: Some(at(20.8, 15.2)),
+                predicted_rect: RectPoint { x: 20.8, y: 15.2 },
+                ..wanted
+            },
+            wanted,
+        ];
+        let mut shapes = [Some(truth[0].shape), Some(truth[1].shape)];
+        let measured = learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None]);
+        let Measured::Refitted(c) = measured[1] else {
+            panic!("{measured:?}");
+        };
+        assert!((c.x - 24.4).hypot(c.y - 16.1) < 0.1, "{c:?}");
     }
 
     #[test]

@@ -3,8 +3,8 @@
 //! that share a particle fitted as one, and each particle judged on its own group's pixels.
 
 use super::{
-    boxes, fit, refit, stayed, window, Fitted, Free, Measured, Member, Neighbourhood, Seen, Shape,
-    Wanted, MARGIN_PX,
+    boxes, fit, rms_within, stayed, window, Fitted, Free, Measured, Member, Neighbourhood, Seen,
+    Shape, Wanted, MARGIN_PX,
 };
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
@@ -184,17 +184,7 @@ impl<'a> Group<'a> {
             .map(|s| {
                 let members: Vec<Member> =
                     s.ids.iter().map(|id| fitted.members[slot[id]]).collect();
-                let own = boxes(&s.members);
-                let inside = |x: f64, y: f64| {
-                    own.iter()
-                        .any(|(c, half)| (x - c.x).abs() <= *half && (y - c.y).abs() <= *half)
-                };
-                let (sum, count) = samples
-                    .iter()
-                    .zip(&residuals)
-                    .filter(|(p, _)| inside(p.0, p.1))
-                    .fold((0.0, 0usize), |(sum, n), (_, r)| (sum + r * r, n + 1));
-                let rms = (sum / count.max(1) as f64).sqrt();
+                let rms = rms_within(&samples, &residuals, &boxes(&s.members));
                 (
                     s.k,
                     self.judge(
@@ -245,13 +235,32 @@ impl<'a> Group<'a> {
     /// first; detections no track knows join only where those do not explain the pixels (most
     /// are fragments of a tracked particle's image).
     fn measure(&self, s: &Subject) -> Option<Measured> {
-        let measured = refit(self.image, &s.members).and_then(|f| self.judge(s, &s.members, f));
+        let measured = self
+            .refit(s, &s.members)
+            .and_then(|f| self.judge(s, &s.members, f));
         if measured.is_some() || s.unknown.is_empty() {
             return measured;
         }
         let mut members = s.members.clone();
         members.extend(&s.unknown);
-        refit(self.image, &members).and_then(|f| self.judge(s, &members, f))
+        self.refit(s, &members)
+            .and_then(|f| self.judge(s, &members, f))
+    }
+
+    /// A group (`members`, the subject's own first) fitted, with the RMS residual its verdict
+    /// rests on. A particle without a detection is judged on its own pixels: whether it is
+    /// there is what they tell, while its neighbours' pixels may hold light no track knows
+    /// (their own neighbours, outside the group). A detected particle is judged on the group's
+    /// pixels: a neighbour the fit does not explain may pull its centre, and its detection then
+    /// stands as detected.
+    fn refit(&self, s: &Subject, members: &[Member]) -> Option<Fitted> {
+        let samples = window(self.image, &boxes(members));
+        let mut fitted = fit(&samples, members, Free::GuessedRadius)?;
+        if self.wanted[s.k].detection.is_none() {
+            let own = boxes(&members[..1]);
+            fitted.rms = rms_within(&samples, &fitted.residuals(&samples), &own);
+        }
+        Some(fitted)
     }
 
     /// What a fit of `members` (the subject's group, perhaps with unknown detections) says of
