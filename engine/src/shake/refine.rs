@@ -121,7 +121,26 @@ impl Floor {
     fn at(&self, (x, y): (f64, f64)) -> f64 {
         self.level + self.slope.0 * (x - self.centre.0) + self.slope.1 * (y - self.centre.1)
     }
+
+    /// The floor's own block of `J^T J` over `samples` (the upper triangle filled): its
+    /// derivatives are the pixels' offsets from the centre, so the block is the same at every
+    /// iteration of a fit.
+    fn block(&self, samples: &[(f64, f64, f64)]) -> FloorBlock {
+        let mut block = [[0.0; FLOOR_TERMS]; FLOOR_TERMS];
+        for &(x, y, _) in samples {
+            let d = [1.0, x - self.centre.0, y - self.centre.1];
+            for i in 0..FLOOR_TERMS {
+                for j in i..FLOOR_TERMS {
+                    block[i][j] += d[i] * d[j];
+                }
+            }
+        }
+        block
+    }
 }
+
+/// See [`Floor::block`].
+type FloorBlock = [[f64; FLOOR_TERMS]; FLOOR_TERMS];
 
 impl Fitted {
     /// Each of `samples`' residual from the fitted model.
@@ -238,13 +257,15 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
         return None;
     }
     let mut floor = Floor::under(samples);
+    let floor_block = floor.block(samples);
     let mut members = seeds.to_vec();
     let mut cost = f64::INFINITY;
     // A member pushed further than its reach from its seed has no light there: it is gone
     // (a particle that is not where its track put it), and leaves the fit.
     let mut gone = vec![false; seeds.len()];
     for _ in 0..MAX_ITERATIONS {
-        let (jtj, jtr, c) = normal_equations(samples, &floor, &members, &gone, free);
+        let (jtj, jtr, c) =
+            normal_equations(samples, (&floor, &floor_block), &members, &gone, free);
         cost = c;
         let step = jtj.cholesky()?.solve(&jtr);
         floor.level += step[0];
@@ -370,7 +391,7 @@ impl InFit {
 /// radius, edge).
 fn normal_equations(
     samples: &[(f64, f64, f64)],
-    floor: &Floor,
+    (floor, floor_block): (&Floor, &FloorBlock),
     members: &[Member],
     gone: &[bool],
     free: Free,
@@ -405,10 +426,14 @@ fn normal_equations(
         for (a, &(i, vi)) in row.iter().enumerate() {
             jtr[i] += residual * vi;
             let line = &mut upper[i * n..(i + 1) * n];
-            for &(j, vj) in &row[a..] {
+            // The floor's own block is the same at every iteration (`floor_block`).
+            for &(j, vj) in &row[a.max(FLOOR_TERMS)..] {
                 line[j] += vi * vj;
             }
         }
+    }
+    for (i, line) in floor_block.iter().enumerate() {
+        upper[i * n..i * n + FLOOR_TERMS].copy_from_slice(line);
     }
     let jtj = DMatrix::from_fn(n, n, |i, j| {
         let v = upper[i.min(j) * n + i.max(j)];
