@@ -434,8 +434,9 @@ impl Velocities {
     /// The centred estimate for the frame `M` frames back, if the track's window supports one;
     /// `Err` if rejected as rough. The centre frame must be seen, and each side of a window of
     /// `+-w` frames may miss at most `max_missing_per_side` frames (to a gap, or to the track's
-    /// start or end; a narrower window may miss none). `w` is M, or narrower down to 2 where the
-    /// particle crosses `min_window_travel_px` within it; with `adaptive_fit` the fit is chosen per component
+    /// start or end; a narrower window may miss none), and as many again seen by one camera
+    /// only ([`Self::fills`]). `w` is M, or narrower down to 2 where the particle crosses
+    /// `min_window_travel_px` within it; with `adaptive_fit` the fit is chosen per component
     /// among the windows the track supports (returned with the vector).
     fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<Centred, ()>> {
         let velocity = &self.config;
