@@ -919,7 +919,14 @@ mod tests {
                 (f64::from(v) + sign * noise).round().clamp(0.0, 255.0) as u8
             })
             .collect();
-        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        measure_merged(&pixels)
+    }
+
+    /// The two tracks of [`merged`] measured in `pixels` (44 x 30): the first claimed the
+    /// blob, the second has no detection of its own and is predicted most of a pixel off.
+    fn measure_merged(pixels: &[u8]) -> Vec<Measured> {
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let image = ImageView::new(44, 30, pixels).expect("sized");
         let blob = at(22.3, 15.8);
         let seen = [Seen {
             centroid: blob,
@@ -970,36 +977,7 @@ mod tests {
             ..disc(14.0, 15.4)
         };
         let truth = [disc(20.3, 15.6), disc(24.4, 16.1), faint];
-        let pixels = draw(44, 30, &truth);
-        let image = ImageView::new(44, 30, &pixels).expect("sized");
-        let blob = at(22.3, 15.8);
-        let seen = [Seen {
-            centroid: blob,
-            diameter_px: 10.0,
-            clear: false,
-            rect: RectPoint {
-                x: blob.x,
-                y: blob.y,
-            },
-        }];
-        let wanted = Wanted {
-            detection: None,
-            predicted_px: Some(at(23.8, 16.6)),
-            predicted_rect: RectPoint { x: 23.8, y: 16.6 },
-            disparity_px: 10.0,
-            relearn: false,
-        };
-        let wanted = [
-            Wanted {
-                detection: Some(0),
-                predicted_px: Some(at(20.8, 15.2)),
-                predicted_rect: RectPoint { x: 20.8, y: 15.2 },
-                ..wanted
-            },
-            wanted,
-        ];
-        let mut shapes = [Some(truth[0].shape), Some(truth[1].shape)];
-        let measured = learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None]);
+        let measured = measure_merged(&draw(44, 30, &truth));
         let Measured::Refitted(c) = measured[1] else {
             panic!("{measured:?}");
         };

@@ -647,6 +647,10 @@ fn fit_window(
     t_eval_s: f64,
 ) -> Option<QuadraticWindow> {
     let points = samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+    // Most windows have every sample seen by both cameras: they need no sights.
+    if samples.iter().all(|s| s.seen_from.is_none()) {
+        return QuadraticWindow::new(half_window_frames, points, t_eval_s);
+    }
     let sights: Vec<_> = samples
         .iter()
         .map(|s| s.seen_from.map(|v| v.camera_in_world))
