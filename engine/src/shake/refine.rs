@@ -27,6 +27,10 @@ const CONVERGED_STEP_PX: f64 = 5e-3;
 /// member's mismatch on top (see `Group::measure`). A lone blob explained worse is not one
 /// particle, and teaches no shape.
 const MAX_RESIDUAL_RATIO: f64 = 4.0;
+/// A fit whose last step still moved a member by more than this fraction of its image's reach
+/// has not settled (it swings between two solutions, or creeps along a valley), and measures
+/// none of its members.
+const SETTLED_STEP_IN_REACHES: f64 = 0.05;
 /// Pixels of background around a particle's edge that its fits see, pixels.
 const MARGIN_PX: f64 = 2.0;
 
@@ -84,11 +88,13 @@ struct Member {
     shape: Shape,
 }
 
-/// The outcome of a fit: the members as fitted and the RMS residual, grey levels.
+/// The outcome of a fit: the members as fitted, the RMS residual (grey levels), and whether
+/// its steps settled (see [`SETTLED_STEP_IN_REACHES`]).
 struct Fitted {
     members: Vec<Member>,
     rms: f64,
     floor: Floor,
+    settled: bool,
 }
 
 /// The background under a fit: a level at the window's centre and its slope across it. A
@@ -263,6 +269,8 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     // A member pushed further than its reach from its seed has no light there: it is gone
     // (a particle that is not where its track put it), and leaves the fit.
     let mut gone = vec![false; seeds.len()];
+    // The largest last step of any member, in its image's reaches.
+    let mut last_step = f64::INFINITY;
     for _ in 0..MAX_ITERATIONS {
         let (jtj, jtr, c) =
             normal_equations(samples, (&floor, &floor_block), &members, &gone, free);
@@ -272,6 +280,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
         floor.slope.0 += step[1];
         floor.slope.1 += step[2];
         let mut moved: f64 = 0.0;
+        last_step = 0.0;
         for (k, m) in members.iter_mut().enumerate() {
             if gone[k] {
                 continue;
@@ -300,6 +309,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
                 continue;
             }
             moved = moved.max(s[0].abs() + s[1].abs());
+            last_step = last_step.max((s[0].abs() + s[1].abs()) / seed.shape.reach_px());
         }
         if !moved.is_finite() {
             return None;
@@ -313,6 +323,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
         members,
         rms,
         floor,
+        settled: last_step < SETTLED_STEP_IN_REACHES,
     })
 }
 
@@ -834,6 +845,23 @@ mod tests {
         let fitted = refit(image, &seeds).expect("fits");
         assert!(stayed(&fitted, &seeds, |_| false));
         assert_pinned(&fitted, &truth);
+    }
+
+    #[test]
+    fn a_fit_that_swings_between_solutions_has_not_settled() {
+        let truth = [disc(20.0, 20.0), disc(21.0, 20.0)];
+        let pixels = draw(40, 40, &truth);
+        let image = ImageView::new(40, 40, &pixels).expect("sized");
+        let fitted = refit(image, &truth).expect("fitted");
+        assert!(fitted.settled);
+        // Shapes half the particles' size: no centres explain the pixels, and the steps
+        // swing the two members about instead of settling.
+        let mut shrunk = truth;
+        for m in &mut shrunk {
+            m.shape.radius_px = 1.5;
+        }
+        let fitted = refit(image, &shrunk).expect("fitted");
+        assert!(!fitted.settled);
     }
 
     #[test]

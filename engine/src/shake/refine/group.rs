@@ -194,6 +194,7 @@ impl<'a> Group<'a> {
                             members,
                             rms,
                             floor: fitted.floor,
+                            settled: fitted.settled,
                         },
                     ),
                 )
@@ -285,7 +286,8 @@ impl<'a> Group<'a> {
             Some(_) => self.max_rms * (members.len() as f64).sqrt(),
             None => self.max_rms,
         };
-        if fitted.rms > max_rms || !stayed(&fitted, members, may_vanish) {
+        // A fit that has not settled measures nothing.
+        if !fitted.settled || fitted.rms > max_rms || !stayed(&fitted, members, may_vanish) {
             return None;
         }
         let at = fitted.members[0].at;
