@@ -101,6 +101,7 @@ impl Detector {
             background: &self.background,
             mask: &self.regions.mask,
             labels: &self.regions.labels,
+            tracked: &[],
         };
         let share = region.area_px as f64 / expected.len() as f64;
         let diameter_px = (4.0 * share / std::f64::consts::PI).sqrt();

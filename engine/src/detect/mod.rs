@@ -227,6 +227,19 @@ impl Detector {
         config: &DetectConfig,
         out: &mut Vec<Detection>,
     ) {
+        self.detect_tracked(image, config, &[], out);
+    }
+
+    /// [`Self::detect`] where tracks expect particles at `tracked` (raw pixels): a region one of
+    /// them falls on is split but its parts are not spot-fitted, as the tracks fit the
+    /// particles there themselves, with the image shapes they learnt.
+    pub fn detect_tracked(
+        &mut self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        tracked: &[PixelPoint],
+        out: &mut Vec<Detection>,
+    ) {
         out.clear();
         let (w, h) = (image.width, image.height);
         if w == 0 || h == 0 {
@@ -246,8 +259,10 @@ impl Detector {
             self.contrast_c,
             &mut self.regions.mask,
         );
+        self.regions.mark_tracked(image, tracked);
         self.regions
             .label(image, config, &self.blur.blurred, &self.background, out);
+        self.regions.unmark_tracked();
         self.background.commit(rise);
     }
 
@@ -452,6 +467,37 @@ mod tests {
         assert!(
             error(&fitted) < 0.02 && error(&fitted) < error(&cut) / 5.0,
             "fitted {fitted:?}, cut {cut:?}"
+        );
+    }
+
+    #[test]
+    fn a_region_a_track_expects_a_particle_on_is_left_to_the_tracks_fit() {
+        let w = 32;
+        let truth = [(12.3, 10.4), (16.9, 11.8)];
+        let img = gaussian_spots(w, 22, 1.5, &truth);
+        let image = ImageView::new(w, 22, &img).expect("sized");
+        let config = DetectConfig::default();
+        let mut out = Vec::new();
+        let elsewhere = [PixelPoint { x: 28.0, y: 3.0 }];
+        let on_it = [PixelPoint { x: 12.0, y: 10.0 }];
+        Detector::new().detect_tracked(image, &config, &elsewhere, &mut out);
+        assert!(
+            out.iter().all(|d| d.separation == Separation::Fitted),
+            "{out:?}"
+        );
+        Detector::new().detect_tracked(image, &config, &on_it, &mut out);
+        assert_eq!(out.len(), 2, "{out:?}");
+        assert!(
+            out.iter().all(|d| d.separation == Separation::Cut),
+            "{out:?}"
+        );
+        // The marks are the image's only: the next image fits the region again.
+        let mut detector = Detector::new();
+        detector.detect_tracked(image, &config, &on_it, &mut out);
+        detector.detect(image, &config, &mut out);
+        assert!(
+            out.iter().all(|d| d.separation == Separation::Fitted),
+            "{out:?}"
         );
     }
 

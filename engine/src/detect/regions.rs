@@ -41,6 +41,11 @@ pub(super) struct Regions {
     pub(super) region: Vec<Pixel>,
     /// The current image's measured regions, in label order, with the detections each gave.
     pub(super) resolved: Vec<ResolvedRegion>,
+    /// Per pixel, whether a track expects a particle there (see [`Regions::mark_tracked`]);
+    /// empty where no track does.
+    tracked: Vec<bool>,
+    /// The pixels marked in `tracked`, to clear them again.
+    tracked_at: Vec<usize>,
 }
 
 /// What measuring a region reads: the image, the blurred image (scaled by 256), the background
@@ -53,6 +58,18 @@ pub(super) struct Context<'a> {
     pub(super) background: &'a Background,
     pub(super) mask: &'a [u8],
     pub(super) labels: &'a [u32],
+    /// Per pixel, whether a track expects a particle there (empty: none does).
+    pub(super) tracked: &'a [bool],
+}
+
+impl Context<'_> {
+    /// Whether a track expects a particle on one of `region`'s pixels.
+    pub(super) fn is_tracked(&self, region: &[Pixel]) -> bool {
+        !self.tracked.is_empty()
+            && region
+                .iter()
+                .any(|p| self.tracked.get(p.index as usize) == Some(&true))
+    }
 }
 
 impl Regions {
@@ -92,6 +109,7 @@ impl Regions {
                 background,
                 mask: &self.mask,
                 labels: &self.labels,
+                tracked: &self.tracked,
             };
             split::resolve(&context, &self.region, label, out);
             self.resolved.push(ResolvedRegion {
@@ -100,6 +118,30 @@ impl Regions {
                 count: out.len() - first,
                 area_px: self.region.len(),
             });
+        }
+    }
+
+    /// Marks the pixels nearest `tracked` (raw pixels; those off the image are left out) for
+    /// this image's labelling.
+    pub(super) fn mark_tracked(&mut self, image: ImageView<'_>, tracked: &[PixelPoint]) {
+        if tracked.is_empty() {
+            return;
+        }
+        self.tracked.resize(image.width * image.height, false);
+        let (w, h) = (image.width as f64, image.height as f64);
+        for p in tracked {
+            if p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0 {
+                let j = nearest_pixel(image, *p);
+                self.tracked[j] = true;
+                self.tracked_at.push(j);
+            }
+        }
+    }
+
+    /// Clears what [`Regions::mark_tracked`] marked, leaving no track for the next image.
+    pub(super) fn unmark_tracked(&mut self) {
+        for j in self.tracked_at.drain(..) {
+            self.tracked[j] = false;
         }
     }
 

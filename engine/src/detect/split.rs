@@ -50,8 +50,14 @@ pub(super) fn resolve(
     // A fit needs every particle of the region, or the missing one's light pulls the rest.
     // Regions cut into three or four parts are only tracked: fitting that many spots costs far
     // more than the few particles it measures, and the tracks that expect particles there still
-    // get them fitted (`Detector::separate_expected`).
-    if config.fit_overlaps && complete && measured.len() == round.len() && round.len() <= 2 {
+    // get them fitted (`Detector::separate_expected`). A region a 3D track expects a particle
+    // on is left to the tracks' own fits.
+    if config.fit_overlaps
+        && complete
+        && measured.len() == round.len()
+        && round.len() <= 2
+        && !context.is_tracked(region)
+    {
         fit::refine_parts(context, region, label, &mut measured);
     }
     out.extend(measured);

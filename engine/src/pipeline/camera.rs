@@ -51,9 +51,10 @@ impl Camera {
         }
     }
 
-    /// Detects into `detections`, looking again where the tracks expect particles (the 2D
-    /// tracks' expectations and the 3D tracks' `predicted` positions, rectified, with their
-    /// gates), and links the rectified features (detections whose centroid the lens model
+    /// Detects into `detections` (regions a 3D track's `predicted` position falls on are left
+    /// to that track's fit), looking again where the tracks expect particles (the 2D tracks'
+    /// expectations and the 3D tracks' `predicted` positions, rectified, with their gates),
+    /// and links the rectified features (detections whose centroid the lens model
     /// cannot undistort are left out). `to_rect` and `from_rect` map this camera's raw pixels
     /// to the rectified image and back.
     pub(super) fn push(
@@ -68,7 +69,9 @@ impl Camera {
             impl Fn(RectPoint) -> Option<PixelPoint>,
         ),
     ) -> CameraOutput {
-        self.detector.detect(image, &config.detect, detections);
+        let tracked: Vec<PixelPoint> = predicted.iter().filter_map(|p| from_rect(p.0)).collect();
+        self.detector
+            .detect_tracked(image, &config.detect, &tracked, detections);
         if config.detect.separate_expected {
             let expected: Vec<PixelPoint> = expected_positions(&self.linker, predicted)
                 .filter_map(&from_rect)
