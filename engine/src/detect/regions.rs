@@ -41,8 +41,8 @@ pub(super) struct Regions {
     pub(super) region: Vec<Pixel>,
     /// The current image's measured regions, in label order, with the detections each gave.
     pub(super) resolved: Vec<ResolvedRegion>,
-    /// Per pixel, whether a track expects a particle there (see [`Regions::mark_tracked`]);
-    /// empty where no track does.
+    /// Per pixel, whether a track expects a particle there in the image being labelled (see
+    /// [`Regions::mark_tracked`]); empty until a track has.
     tracked: Vec<bool>,
     /// The pixels marked in `tracked`, to clear them again.
     tracked_at: Vec<usize>,
