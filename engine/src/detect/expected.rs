@@ -6,7 +6,7 @@
 //! [`DetectConfig::separate_expected`]: super::DetectConfig::separate_expected
 
 use super::fit::{fit_to_region, spot_seed};
-use super::regions::{nearest_pixel, Context, ResolvedRegion};
+use super::regions::{nearest_pixel, pixel_on, Context, ResolvedRegion};
 use super::split::MAX_SPOTS_PER_REGION;
 use super::spots::{Spot, SpotFit};
 use super::{DetectConfig, Detection, Detector, Separation};
@@ -61,13 +61,11 @@ impl Detector {
     /// The expected positions that fall on a measured region of the current image, with that
     /// region's index in `resolved`, sorted by region.
     fn claims(&self, image: ImageView<'_>, expected: &[PixelPoint]) -> Vec<(usize, PixelPoint)> {
-        let (w, h) = (image.width as f64, image.height as f64);
         let (mask, labels) = (&self.regions.mask, &self.regions.labels);
         let mut claims: Vec<(usize, PixelPoint)> = expected
             .iter()
-            .filter(|p| p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0)
             .filter_map(|&p| {
-                let j = nearest_pixel(image, p);
+                let j = pixel_on(image, p)?;
                 if mask.get(j) != Some(&2) {
                     return None;
                 }

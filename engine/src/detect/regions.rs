@@ -128,13 +128,9 @@ impl Regions {
             return;
         }
         self.tracked.resize(image.width * image.height, false);
-        let (w, h) = (image.width as f64, image.height as f64);
-        for p in tracked {
-            if p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0 {
-                let j = nearest_pixel(image, *p);
-                self.tracked[j] = true;
-                self.tracked_at.push(j);
-            }
+        for j in tracked.iter().filter_map(|&p| pixel_on(image, p)) {
+            self.tracked[j] = true;
+            self.tracked_at.push(j);
         }
     }
 
@@ -285,6 +281,13 @@ impl Context<'_> {
             separation: Separation::Clear,
         })
     }
+}
+
+/// The index of the pixel nearest `at`, where `at` lies on the image (`None` off it).
+pub(super) fn pixel_on(image: ImageView<'_>, at: PixelPoint) -> Option<usize> {
+    let (w, h) = (image.width as f64, image.height as f64);
+    (at.x >= 0.0 && at.y >= 0.0 && at.x <= w - 1.0 && at.y <= h - 1.0)
+        .then(|| nearest_pixel(image, at))
 }
 
 /// Index of the pixel nearest a point of the image (clamped to the image).

@@ -73,9 +73,9 @@ impl Camera {
         self.detector
             .detect_tracked(image, &config.detect, &tracked, detections);
         if config.detect.separate_expected {
-            let expected: Vec<PixelPoint> = expected_positions(&self.linker, predicted)
-                .filter_map(&from_rect)
-                .collect();
+            // The 3D tracks' predictions first, then the 2D tracks' own expectations.
+            let mut expected = tracked;
+            expected.extend(uncovered_expectations(&self.linker, predicted).filter_map(&from_rect));
             self.detector
                 .separate_expected(image, &config.detect, &expected, detections);
         }
@@ -102,10 +102,9 @@ impl Camera {
     }
 }
 
-/// Where particles are expected in this image, rectified: each 3D track's prediction (`(point,
-/// gate)`), and the 2D tracks' expectations that no prediction's gate covers (two expectations
-/// of one particle would be fitted as two particles).
-fn expected_positions<'a>(
+/// The 2D tracks' expectations (rectified) that no 3D track's prediction (`(point, gate)`)
+/// covers: two expectations of one particle would be fitted as two particles.
+fn uncovered_expectations<'a>(
     linker: &'a CameraLinker,
     predicted: &'a [(RectPoint, f64)],
 ) -> impl Iterator<Item = RectPoint> + 'a {
@@ -120,6 +119,5 @@ fn expected_positions<'a>(
             (p.x - e.x).powi(2) + (p.y - e.y).powi(2) <= gate * gate
         })
     };
-    let own = linker.expected_positions().filter(move |e| !covered(e));
-    predicted.iter().map(|p| p.0).chain(own)
+    linker.expected_positions().filter(move |e| !covered(e))
 }

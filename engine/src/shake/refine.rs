@@ -308,8 +308,9 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
                 m.shape.amplitude = 0.0;
                 continue;
             }
-            moved = moved.max(s[0].abs() + s[1].abs());
-            last_step = last_step.max((s[0].abs() + s[1].abs()) / seed.shape.reach_px());
+            let step_px = s[0].abs() + s[1].abs();
+            moved = moved.max(step_px);
+            last_step = last_step.max(step_px / seed.shape.reach_px());
         }
         if !moved.is_finite() {
             return None;
