@@ -373,28 +373,44 @@ impl InFit {
         self.at(table, p).map_or(0.0, |[.., g]| self.amplitude * g)
     }
 
-    /// [`InFit::light`], its derivatives pushed onto the pixel's Jacobian `row`.
-    fn add(&self, table: &[f64], p: (f64, f64), free: Free, row: &mut Vec<(usize, f64)>) -> f64 {
-        let Some([dx, dy, r, z, g]) = self.at(table, p) else {
-            return 0.0;
-        };
-        let (a, j) = (self.amplitude, self.first);
+    /// [`InFit::light`], and its stretch of the pixel's Jacobian row (`None` beyond its reach).
+    fn add(&self, table: &[f64], p: (f64, f64), free: Free) -> Option<(f64, Stretch)> {
+        let [dx, dy, r, z, g] = self.at(table, p)?;
+        let a = self.amplitude;
         let dg_dz = -g * (1.0 - g);
         let dg_dr = dg_dz * self.per_edge;
-        if r > 1e-9 {
-            // r grows as the centre moves away from the pixel.
+        // r grows as the centre moves away from the pixel; at the centre itself the centre's
+        // derivatives are left out.
+        let (first, mut values, mut len) = if r > 1e-9 {
             let along = -a * dg_dr / r;
-            row.push((j, along * dx));
-            row.push((j + 1, along * dy));
-        }
-        row.push((j + 2, g));
+            (self.first, [along * dx, along * dy, g, 0.0, 0.0], 3)
+        } else {
+            (self.first + 2, [g, 0.0, 0.0, 0.0, 0.0], 1)
+        };
         if free == Free::Shape {
-            row.push((j + 3, -a * dg_dr));
-            row.push((j + 4, -a * dg_dz * z * self.per_edge));
+            values[len] = -a * dg_dr;
+            values[len + 1] = -a * dg_dz * z * self.per_edge;
+            len += 2;
         } else if self.radius_free {
-            row.push((j + 3, -a * dg_dr));
+            values[len] = -a * dg_dr;
+            len += 1;
         }
-        a * g
+        Some((a * g, Stretch { first, len, values }))
+    }
+}
+
+/// One member's nonzero stretch of a pixel's Jacobian row: consecutive unknowns from `first`,
+/// `len` of them.
+#[derive(Clone, Copy)]
+struct Stretch {
+    first: usize,
+    len: usize,
+    values: [f64; 5],
+}
+
+impl Stretch {
+    fn values(&self) -> &[f64] {
+        &self.values[..self.len]
     }
 }
 
@@ -421,28 +437,22 @@ fn normal_equations(
         .map(|(k, m)| InFit::new(m, FLOOR_TERMS + per * k, free))
         .collect();
     // Each pixel's Jacobian row is nonzero only for the floor and the members that reach it,
-    // in increasing order of unknown.
-    let mut row: Vec<(usize, f64)> = Vec::with_capacity(n);
+    // each a stretch of consecutive unknowns, in increasing order.
+    let mut row: Vec<Stretch> = Vec::with_capacity(in_fit.len());
     let mut cost = 0.0;
     for &(x, y, value) in samples {
         row.clear();
-        row.push((0, 1.0));
-        row.push((1, x - floor.centre.0));
-        row.push((2, y - floor.centre.1));
         let mut model = floor.at((x, y));
         for m in &in_fit {
-            model += m.add(table, (x, y), free, &mut row);
+            if let Some((light, stretch)) = m.add(table, (x, y), free) {
+                model += light;
+                row.push(stretch);
+            }
         }
         let residual = value - model;
         cost += residual * residual;
-        for (a, &(i, vi)) in row.iter().enumerate() {
-            jtr[i] += residual * vi;
-            let line = &mut upper[i * n..(i + 1) * n];
-            // The floor's own block is the same at every iteration (`floor_block`).
-            for &(j, vj) in &row[a.max(FLOOR_TERMS)..] {
-                line[j] += vi * vj;
-            }
-        }
+        let d = [1.0, x - floor.centre.0, y - floor.centre.1];
+        accumulate(&mut upper, &mut jtr, n, (&d, &row), residual);
     }
     for (i, line) in floor_block.iter().enumerate() {
         upper[i * n..i * n + FLOOR_TERMS].copy_from_slice(line);
@@ -457,6 +467,45 @@ fn normal_equations(
         }
     });
     (jtj, DVector::from_vec(jtr), cost)
+}
+
+/// One pixel's share of `J^T r` and of `J^T J`'s upper triangle (`upper`, `n` wide, the
+/// floor's own block left out: it is the same at every iteration): its floor derivatives `d`
+/// and its members' stretches `row`.
+fn accumulate(
+    upper: &mut [f64],
+    jtr: &mut [f64],
+    n: usize,
+    (d, row): (&[f64; FLOOR_TERMS], &[Stretch]),
+    residual: f64,
+) {
+    for (i, &di) in d.iter().enumerate() {
+        jtr[i] += residual * di;
+        let line = &mut upper[i * n..(i + 1) * n];
+        for s in row {
+            for (cell, &v) in line[s.first..s.first + s.len].iter_mut().zip(s.values()) {
+                *cell += di * v;
+            }
+        }
+    }
+    for (a, sa) in row.iter().enumerate() {
+        for (p, &vi) in sa.values().iter().enumerate() {
+            let i = sa.first + p;
+            jtr[i] += residual * vi;
+            let line = &mut upper[i * n..(i + 1) * n];
+            for (cell, &vj) in line[i..sa.first + sa.len].iter_mut().zip(&sa.values()[p..]) {
+                *cell += vi * vj;
+            }
+            for sb in &row[a + 1..] {
+                for (cell, &vj) in line[sb.first..sb.first + sb.len]
+                    .iter_mut()
+                    .zip(sb.values())
+                {
+                    *cell += vi * vj;
+                }
+            }
+        }
+    }
 }
 
 /// The pixels (x, y, grey level) within `half` of any of the centres (a box), each once, but

@@ -107,7 +107,9 @@ impl<'a> Group<'a> {
 
     /// Every wanted particle measured among its neighbours (`None`: not fitted). Groups that
     /// share a particle are fitted as one, once; a particle whose verdict that fit does not
-    /// give is fitted again with its own group alone, then with the detections no track knows.
+    /// give is fitted again with its own group alone (unless it is detected and its group is
+    /// the whole of the joint fit, which was then its own fit), then with the detections no
+    /// track knows.
     pub(super) fn measure_all(&self) -> Vec<Option<Measured>> {
         let subjects: Vec<Option<Subject>> =
             (0..self.wanted.len()).map(|k| self.subject(k)).collect();
@@ -117,14 +119,21 @@ impl<'a> Group<'a> {
                 .iter()
                 .filter_map(|&k| subjects[k].as_ref())
                 .collect();
+            // A detected particle whose group is the whole cluster had its own fit, judged as
+            // its own, in the joint one.
+            let mut fitted_alone = vec![false; group.len()];
             if group.len() > 1 {
                 for (k, m) in self.measure_together(&group) {
                     measured[k] = m;
                 }
+                let everyone = distinct_ids(&group);
+                for (alone, s) in fitted_alone.iter_mut().zip(&group) {
+                    *alone = s.ids.len() == everyone && self.wanted[s.k].detection.is_some();
+                }
             }
-            for s in group {
+            for (s, fitted_alone) in group.into_iter().zip(fitted_alone) {
                 if measured[s.k].is_none() {
-                    measured[s.k] = self.measure(s);
+                    measured[s.k] = self.measure(s, fitted_alone);
                 }
             }
         }
@@ -233,12 +242,16 @@ impl<'a> Group<'a> {
     }
 
     /// Wanted particle `k` measured in a fit of its own group: the tracked particles' models
-    /// first; detections no track knows join only where those do not explain the pixels (most
-    /// are fragments of a tracked particle's image).
-    fn measure(&self, s: &Subject) -> Option<Measured> {
-        let measured = self
-            .refit(s, &s.members)
-            .and_then(|f| self.judge(s, &s.members, f));
+    /// first (unless that fit was already made, `fitted_alone`); detections no track knows
+    /// join only where those do not explain the pixels (most are fragments of a tracked
+    /// particle's image).
+    fn measure(&self, s: &Subject, fitted_alone: bool) -> Option<Measured> {
+        let measured = if fitted_alone {
+            None
+        } else {
+            self.refit(s, &s.members)
+                .and_then(|f| self.judge(s, &s.members, f))
+        };
         if measured.is_some() || s.unknown.is_empty() {
             return measured;
         }
@@ -356,6 +369,14 @@ impl<'a> Group<'a> {
         }
         (tracked, ids, unknown, hidden)
     }
+}
+
+/// How many distinct particles the subjects' groups hold together.
+fn distinct_ids(group: &[&Subject]) -> usize {
+    let mut ids: Vec<usize> = group.iter().flat_map(|s| s.ids.iter().copied()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids.len()
 }
 
 /// Whether `at` is at least `margin` pixels inside the image.
