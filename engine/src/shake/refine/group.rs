@@ -119,16 +119,11 @@ impl<'a> Group<'a> {
                 .iter()
                 .filter_map(|&k| subjects[k].as_ref())
                 .collect();
-            // A detected particle whose group is the whole cluster had its own fit, judged as
-            // its own, in the joint one.
             let mut fitted_alone = vec![false; group.len()];
             if group.len() > 1 {
-                for (k, m) in self.measure_together(&group) {
+                for (i, (k, m, alone)) in self.measure_together(&group).into_iter().enumerate() {
                     measured[k] = m;
-                }
-                let everyone = distinct_ids(&group);
-                for (alone, s) in fitted_alone.iter_mut().zip(&group) {
-                    *alone = s.ids.len() == everyone && self.wanted[s.k].detection.is_some();
+                    fitted_alone[i] = alone;
                 }
             }
             for (s, fitted_alone) in group.into_iter().zip(fitted_alone) {
@@ -171,8 +166,10 @@ impl<'a> Group<'a> {
     }
 
     /// Groups that share particles fitted as one; each one's verdict judged on its own
-    /// members and its own pixels.
-    fn measure_together(&self, group: &[&Subject]) -> Vec<(usize, Option<Measured>)> {
+    /// members and its own pixels, and whether its group is the whole of the joint fit (which
+    /// was then its own group's fit, judged also as that fit would be: a particle without a
+    /// detection on its own pixels alone).
+    fn measure_together(&self, group: &[&Subject]) -> Vec<(usize, Option<Measured>, bool)> {
         let mut slot = std::collections::HashMap::new();
         let mut seeds = Vec::new();
         for s in group {
@@ -188,25 +185,24 @@ impl<'a> Group<'a> {
             return Vec::new();
         };
         let residuals = fitted.residuals(&samples);
+        let judged_on = |s: &Subject, own: &[Member]| {
+            let fitted = Fitted {
+                members: s.ids.iter().map(|id| fitted.members[slot[id]]).collect(),
+                rms: rms_within(&samples, &residuals, &boxes(own)),
+                floor: fitted.floor,
+                settled: fitted.settled,
+            };
+            self.judge(s, &s.members, fitted)
+        };
         group
             .iter()
             .map(|s| {
-                let members: Vec<Member> =
-                    s.ids.iter().map(|id| fitted.members[slot[id]]).collect();
-                let rms = rms_within(&samples, &residuals, &boxes(&s.members));
-                (
-                    s.k,
-                    self.judge(
-                        s,
-                        &s.members,
-                        Fitted {
-                            members,
-                            rms,
-                            floor: fitted.floor,
-                            settled: fitted.settled,
-                        },
-                    ),
-                )
+                let alone = s.ids.len() == seeds.len();
+                let mut measured = judged_on(s, &s.members);
+                if measured.is_none() && alone && self.wanted[s.k].detection.is_none() {
+                    measured = judged_on(s, &s.members[..1]);
+                }
+                (s.k, measured, alone)
             })
             .collect()
     }
@@ -369,14 +365,6 @@ impl<'a> Group<'a> {
         }
         (tracked, ids, unknown, hidden)
     }
-}
-
-/// How many distinct particles the subjects' groups hold together.
-fn distinct_ids(group: &[&Subject]) -> usize {
-    let mut ids: Vec<usize> = group.iter().flat_map(|s| s.ids.iter().copied()).collect();
-    ids.sort_unstable();
-    ids.dedup();
-    ids.len()
 }
 
 /// Whether `at` is at least `margin` pixels inside the image.
