@@ -107,9 +107,9 @@ impl<'a> Group<'a> {
 
     /// Every wanted particle measured among its neighbours (`None`: not fitted). Groups that
     /// share a particle are fitted as one, once; a particle whose verdict that fit does not
-    /// give is fitted again with its own group alone (unless it is detected and its group is
-    /// the whole of the joint fit, which was then its own fit), then with the detections no
-    /// track knows.
+    /// give is fitted again with its own group alone (unless its group is the whole of the
+    /// joint fit, which was then its own group's fit and judged as such), then with the
+    /// detections no track knows.
     pub(super) fn measure_all(&self) -> Vec<Option<Measured>> {
         let subjects: Vec<Option<Subject>> =
             (0..self.wanted.len()).map(|k| self.subject(k)).collect();
