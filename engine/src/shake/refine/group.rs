@@ -114,21 +114,21 @@ impl<'a> Group<'a> {
         let subjects: Vec<Option<Subject>> =
             (0..self.wanted.len()).map(|k| self.subject(k)).collect();
         let mut measured = vec![None; subjects.len()];
+        let mut fitted_alone = vec![false; subjects.len()];
         for cluster in self.clusters(&subjects) {
             let group: Vec<&Subject> = cluster
                 .iter()
                 .filter_map(|&k| subjects[k].as_ref())
                 .collect();
-            let mut fitted_alone = vec![false; group.len()];
             if group.len() > 1 {
-                for (i, (k, m, alone)) in self.measure_together(&group).into_iter().enumerate() {
+                for (k, m, alone) in self.measure_together(&group) {
                     measured[k] = m;
-                    fitted_alone[i] = alone;
+                    fitted_alone[k] = alone;
                 }
             }
-            for (s, fitted_alone) in group.into_iter().zip(fitted_alone) {
+            for s in group {
                 if measured[s.k].is_none() {
-                    measured[s.k] = self.measure(s, fitted_alone);
+                    measured[s.k] = self.measure(s, fitted_alone[s.k]);
                 }
             }
         }
