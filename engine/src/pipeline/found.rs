@@ -336,7 +336,6 @@ mod tests {
             left: RectPoint { x: 12.0, y: 5.0 },
             right: RectPoint { x: -18.0, y: 5.0 },
             gate_px: 1.0,
-            carried: false,
         };
         let [l, r] = partial([Some(spot(13.0, 6.0)), None], &p, &rect).expect("one image");
         assert_eq!(

@@ -11,8 +11,8 @@
 //! A track predicts itself once it has [`MIN_SAMPLES`] samples, or from its third sample where
 //! its motion agrees with its mature neighbours' ([`neighbours`]): a young ghost does not.
 //! Younger still (one or two samples: a new stereo pair), it is carried by its neighbours' flow
-//! where it lies among them, and continues only where detections in both images are found
-//! there; a hypothesis that time settles, in 3D, where the chain would link it per camera.
+//! where it lies among them, and is looked for there like any other track: a hypothesis that
+//! time settles, in 3D, where the chain would link it per camera.
 
 use nalgebra::{Isometry3, Point3};
 
@@ -104,9 +104,6 @@ pub(crate) struct Prediction {
     pub(crate) right: RectPoint,
     /// How far from the projections, rectified pixels, its particle may be found.
     pub(crate) gate_px: f64,
-    /// Carried by its neighbours' flow (a track too young for a motion of its own): found only
-    /// by detections in both images, never looked for in the images themselves.
-    pub(crate) carried: bool,
 }
 
 impl Prediction {
@@ -169,7 +166,6 @@ pub(crate) fn predict<'a>(
             left,
             right,
             gate_px: 0.0,
-            carried: carried.is_some(),
         };
         predicted.push((prediction, track.predictor.sigma_px()));
     }

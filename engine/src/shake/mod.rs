@@ -10,8 +10,8 @@
 //!
 //! A track found in one image only claims that detection (it is explained, and must not pair
 //! with another particle's) and coasts; a track found in neither coasts. A track carried by its
-//! neighbours' flow (too young for a motion of its own) is found in both images or not at all:
-//! otherwise the per-frame chain carries it on.
+//! neighbours' flow (too young for a motion of its own) is looked for the same way: left to
+//! the per-frame chain, a young track broke wherever a neighbour hid its particle in one image.
 
 pub(crate) mod refine;
 
@@ -101,16 +101,10 @@ pub(crate) fn find(
             miss_px,
         });
     }
-    // A carried track not found in both images is left to the per-frame chain.
-    let settled: Vec<bool> = done
-        .iter()
-        .zip(predictions)
-        .map(|(&done, p)| done || p.carried)
-        .collect();
-    let left_single = claim_single(&left_near, &settled, &mut shaken.claimed_left);
-    let right_single = claim_single(&right_near, &settled, &mut shaken.claimed_right);
+    let left_single = claim_single(&left_near, &done, &mut shaken.claimed_left);
+    let right_single = claim_single(&right_near, &done, &mut shaken.claimed_right);
     shaken.partial = (0..predictions.len())
-        .filter(|&i| !settled[i])
+        .filter(|&i| !done[i])
         .map(|i| (i, [left_single[i], right_single[i]]))
         .collect();
     shaken.found.sort_by_key(|f| f.prediction);
@@ -195,7 +189,6 @@ mod tests {
             left: RectPoint { x: lx, y },
             right: RectPoint { x: rx, y },
             gate_px: 2.0,
-            carried: false,
         }
     }
 
@@ -220,26 +213,6 @@ mod tests {
             "the second track's own detection"
         );
         assert_eq!(s.partial, [(1, [None, Some(1)])]);
-    }
-
-    #[test]
-    fn a_carried_track_is_found_in_both_images_or_claims_nothing() {
-        let mut carried = prediction(1, 10.0, 0.0, 5.0);
-        carried.carried = true;
-        let s = find(
-            &[carried],
-            &[feature(10.2, 5.0)],
-            &[feature(30.0, 5.0)],
-            2.0,
-        );
-        assert!(s.found.is_empty());
-        assert_eq!(
-            (s.claimed_left, s.claimed_right),
-            (vec![false], vec![false])
-        );
-        assert!(s.partial.is_empty(), "left to the chain");
-        let s = find(&[carried], &[feature(10.2, 5.0)], &[feature(0.3, 5.0)], 2.0);
-        assert_eq!(s.found.len(), 1);
     }
 
     #[test]
