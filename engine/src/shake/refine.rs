@@ -8,10 +8,10 @@
 //! widths known, the centres are pinned.
 
 mod group;
-
-use nalgebra::{DMatrix, DVector};
+mod normal;
 
 use group::{members_of, Group};
+use normal::{normal_equations, Rows};
 
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
@@ -264,6 +264,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     }
     let mut floor = Floor::under(samples);
     let floor_block = floor.block(samples);
+    let rows = Rows::of(samples);
     let mut members = seeds.to_vec();
     let mut cost = f64::INFINITY;
     // A member pushed further than its reach from its seed has no light there: it is gone
@@ -272,8 +273,13 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     // The largest last step of any member, in its image's reaches.
     let mut last_step = f64::INFINITY;
     for _ in 0..MAX_ITERATIONS {
-        let (jtj, jtr, c) =
-            normal_equations(samples, (&floor, &floor_block), &members, &gone, free);
+        let (jtj, jtr, c) = normal_equations(
+            (samples, &rows),
+            (&floor, &floor_block),
+            &members,
+            &gone,
+            free,
+        );
         cost = c;
         let step = jtj.cholesky()?.solve(&jtr);
         floor.level += step[0];
@@ -373,138 +379,30 @@ impl InFit {
         self.at(table, p).map_or(0.0, |[.., g]| self.amplitude * g)
     }
 
-    /// [`InFit::light`], and its stretch of the pixel's Jacobian row (`None` beyond its reach).
-    fn add(&self, table: &[f64], p: (f64, f64), free: Free) -> Option<(f64, Stretch)> {
-        let [dx, dy, r, z, g] = self.at(table, p)?;
+    /// The Jacobian values at a pixel `(dx, dy)` from the centre, at distance `r` within the
+    /// reach: x, y, amplitude (the disc's height per unit amplitude), then radius and edge
+    /// where free.
+    fn values(&self, table: &[f64], (dx, dy, r): (f64, f64, f64), free: Free) -> [f64; 5] {
+        let z = (r - self.radius_px) * self.per_edge;
+        let g = logistic_in(table, z);
         let a = self.amplitude;
         let dg_dz = -g * (1.0 - g);
         let dg_dr = dg_dz * self.per_edge;
+        let mut values = [0.0, 0.0, g, 0.0, 0.0];
         // r grows as the centre moves away from the pixel; at the centre itself the centre's
         // derivatives are left out.
-        let (first, mut values, mut len) = if r > 1e-9 {
+        if r > 1e-9 {
             let along = -a * dg_dr / r;
-            (self.first, [along * dx, along * dy, g, 0.0, 0.0], 3)
-        } else {
-            (self.first + 2, [g, 0.0, 0.0, 0.0, 0.0], 1)
-        };
+            values[0] = along * dx;
+            values[1] = along * dy;
+        }
         if free == Free::Shape {
-            values[len] = -a * dg_dr;
-            values[len + 1] = -a * dg_dz * z * self.per_edge;
-            len += 2;
+            values[3] = -a * dg_dr;
+            values[4] = -a * dg_dz * z * self.per_edge;
         } else if self.radius_free {
-            values[len] = -a * dg_dr;
-            len += 1;
+            values[3] = -a * dg_dr;
         }
-        Some((a * g, Stretch { first, len, values }))
-    }
-}
-
-/// One member's nonzero stretch of a pixel's Jacobian row: consecutive unknowns from `first`,
-/// `len` of them.
-#[derive(Clone, Copy)]
-struct Stretch {
-    first: usize,
-    len: usize,
-    values: [f64; 5],
-}
-
-impl Stretch {
-    fn values(&self) -> &[f64] {
-        &self.values[..self.len]
-    }
-}
-
-/// `J^T J`, `J^T r` and the sum of squared residuals of the model (`floor` plus the members'
-/// discs but those `gone`) over `samples`; per member the unknowns are x, y, amplitude (and
-/// radius, edge).
-fn normal_equations(
-    samples: &[(f64, f64, f64)],
-    (floor, floor_block): (&Floor, &FloorBlock),
-    members: &[Member],
-    gone: &[bool],
-    free: Free,
-) -> (DMatrix<f64>, DVector<f64>, f64) {
-    let per = free.per_member();
-    let n = FLOOR_TERMS + per * members.len();
-    // Upper triangle only, accumulated flat; mirrored once at the end.
-    let mut upper = vec![0.0; n * n];
-    let mut jtr = vec![0.0; n];
-    let table = logistic_table();
-    let in_fit: Vec<InFit> = members
-        .iter()
-        .enumerate()
-        .filter(|(k, _)| !gone[*k])
-        .map(|(k, m)| InFit::new(m, FLOOR_TERMS + per * k, free))
-        .collect();
-    // Each pixel's Jacobian row is nonzero only for the floor and the members that reach it,
-    // each a stretch of consecutive unknowns, in increasing order.
-    let mut row: Vec<Stretch> = Vec::with_capacity(in_fit.len());
-    let mut cost = 0.0;
-    for &(x, y, value) in samples {
-        row.clear();
-        let mut model = floor.at((x, y));
-        for m in &in_fit {
-            if let Some((light, stretch)) = m.add(table, (x, y), free) {
-                model += light;
-                row.push(stretch);
-            }
-        }
-        let residual = value - model;
-        cost += residual * residual;
-        let d = [1.0, x - floor.centre.0, y - floor.centre.1];
-        accumulate(&mut upper, &mut jtr, n, (&d, &row), residual);
-    }
-    for (i, line) in floor_block.iter().enumerate() {
-        upper[i * n..i * n + FLOOR_TERMS].copy_from_slice(line);
-    }
-    let jtj = DMatrix::from_fn(n, n, |i, j| {
-        let v = upper[i.min(j) * n + i.max(j)];
-        // Levenberg's touch of damping keeps a group whose members nearly coincide solvable.
-        if i == j {
-            v * (1.0 + 1e-3) + 1e-9
-        } else {
-            v
-        }
-    });
-    (jtj, DVector::from_vec(jtr), cost)
-}
-
-/// One pixel's share of `J^T r` and of `J^T J`'s upper triangle (`upper`, `n` wide, the
-/// floor's own block left out: it is the same at every iteration): its floor derivatives `d`
-/// and its members' stretches `row`.
-fn accumulate(
-    upper: &mut [f64],
-    jtr: &mut [f64],
-    n: usize,
-    (d, row): (&[f64; FLOOR_TERMS], &[Stretch]),
-    residual: f64,
-) {
-    for (i, &di) in d.iter().enumerate() {
-        jtr[i] += residual * di;
-        let line = &mut upper[i * n..(i + 1) * n];
-        for s in row {
-            for (cell, &v) in line[s.first..s.first + s.len].iter_mut().zip(s.values()) {
-                *cell += di * v;
-            }
-        }
-    }
-    for (a, sa) in row.iter().enumerate() {
-        for (p, &vi) in sa.values().iter().enumerate() {
-            let i = sa.first + p;
-            jtr[i] += residual * vi;
-            let line = &mut upper[i * n..(i + 1) * n];
-            for (cell, &vj) in line[i..sa.first + sa.len].iter_mut().zip(&sa.values()[p..]) {
-                *cell += vi * vj;
-            }
-            for sb in &row[a + 1..] {
-                for (cell, &vj) in line[sb.first..sb.first + sb.len]
-                    .iter_mut()
-                    .zip(sb.values())
-                {
-                    *cell += vi * vj;
-                }
-            }
-        }
+        values
     }
 }
 
