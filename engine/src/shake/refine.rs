@@ -11,7 +11,7 @@ mod group;
 mod normal;
 
 use group::{members_of, Group};
-use normal::{normal_equations, Rows};
+use normal::{Normal, Rows};
 
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
@@ -265,6 +265,7 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     let mut floor = Floor::under(samples);
     let floor_block = floor.block(samples);
     let rows = Rows::of(samples);
+    let mut normal = Normal::default();
     let mut members = seeds.to_vec();
     let mut cost = f64::INFINITY;
     // A member pushed further than its reach from its seed has no light there: it is gone
@@ -273,11 +274,10 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     // The largest last step of any member, in its image's reaches.
     let mut last_step = f64::INFINITY;
     for _ in 0..MAX_ITERATIONS {
-        let (jtj, jtr, c) = normal_equations(
+        let (jtj, jtr, c) = normal.build(
             (samples, &rows),
             (&floor, &floor_block),
-            &members,
-            &gone,
+            (&members, &gone),
             free,
         );
         cost = c;

@@ -49,109 +49,129 @@ impl Rows {
 /// One member's pixels within its reach: each sample's index and the member's Jacobian values
 /// there (x, y, amplitude, then radius and edge where free; zero where a derivative is left
 /// out), `len` of them from unknown `first`.
+#[derive(Default)]
 struct Hits {
     first: usize,
     len: usize,
     idx: Vec<usize>,
+    offsets: Vec<(f64, f64, f64)>,
     values: Vec<[f64; 5]>,
 }
 
-/// `J^T J`, `J^T r` and the sum of squared residuals of the model (`floor` plus the members'
-/// discs but those `gone`) over `samples` (by `rows`); per member the unknowns are x, y,
-/// amplitude (and radius, edge).
-pub(super) fn normal_equations(
-    (samples, rows): (&[(f64, f64, f64)], &Rows),
-    (floor, floor_block): (&Floor, &FloorBlock),
-    members: &[Member],
-    gone: &[bool],
-    free: Free,
-) -> (DMatrix<f64>, DVector<f64>, f64) {
-    let per = free.per_member();
-    let n = FLOOR_TERMS + per * members.len();
-    let mut model: Vec<f64> = samples.iter().map(|&(x, y, _)| floor.at((x, y))).collect();
-    let hits: Vec<Hits> = members
-        .iter()
-        .enumerate()
-        .filter(|(k, _)| !gone[*k])
-        .map(|(k, m)| {
-            let in_fit = InFit::new(m, FLOOR_TERMS + per * k, free);
-            hits_of(&in_fit, (samples, rows), free, &mut model)
-        })
-        .collect();
-    let residuals: Vec<f64> = samples.iter().zip(&model).map(|(s, m)| s.2 - m).collect();
-    let cost = residuals.iter().fold(0.0, |c, r| c + r * r);
-    // Upper triangle only, accumulated flat; mirrored once at the end.
-    let mut upper = vec![0.0; n * n];
-    let mut jtr = vec![0.0; n];
-    for (&(x, y, _), &residual) in samples.iter().zip(&residuals) {
-        let d = [1.0, x - floor.centre.0, y - floor.centre.1];
-        for (t, di) in jtr.iter_mut().zip(d) {
-            *t += residual * di;
-        }
-    }
-    for (a, h) in hits.iter().enumerate() {
-        member_terms(h, (samples, &residuals), floor, (&mut upper, &mut jtr), n);
-        for b in &hits[a + 1..] {
-            cross_terms(h, b, &mut upper, n);
-        }
-    }
-    for (i, line) in floor_block.iter().enumerate() {
-        upper[i * n..i * n + FLOOR_TERMS].copy_from_slice(line);
-    }
-    let jtj = DMatrix::from_fn(n, n, |i, j| {
-        let v = upper[i.min(j) * n + i.max(j)];
-        // Levenberg's touch of damping keeps a group whose members nearly coincide solvable.
-        if i == j {
-            v * (1.0 + 1e-3) + 1e-9
-        } else {
-            v
-        }
-    });
-    (jtj, DVector::from_vec(jtr), cost)
+/// A fit's normal equations, rebuilt at every iteration in buffers kept across them.
+#[derive(Default)]
+pub(super) struct Normal {
+    model: Vec<f64>,
+    residuals: Vec<f64>,
+    hits: Vec<Hits>,
+    upper: Vec<f64>,
+    jtr: Vec<f64>,
 }
 
-/// A member's pixels and Jacobian values, its light added to `model`: first the pixels within
-/// its reach, then their values in one pass over them (whose square roots and divisions the
-/// compiler runs side by side).
-fn hits_of(
-    m: &InFit,
-    (samples, rows): (&[(f64, f64, f64)], &Rows),
-    free: Free,
-    model: &mut [f64],
-) -> Hits {
-    let len = match free {
-        Free::Shape => 5,
-        Free::GuessedRadius if m.radius_free => 4,
-        Free::GuessedRadius => 3,
-    };
-    // Widened by a hair so that rounding never leaves out a pixel within the reach.
-    let half = m.reach_sq.sqrt() + 1e-9;
-    let mut idx = Vec::new();
-    let mut offsets = Vec::new();
-    for run in rows.within(samples, m.at, half) {
-        for i in run {
-            let (x, y, _) = samples[i];
-            let (dx, dy) = (x - m.at.x, y - m.at.y);
-            let r_sq = dx * dx + dy * dy;
-            if r_sq <= m.reach_sq {
-                idx.push(i);
-                offsets.push((dx, dy, r_sq));
+impl Normal {
+    /// `J^T J`, `J^T r` and the sum of squared residuals of the model (`floor` plus the
+    /// members' discs but those `gone`) over `samples` (by `rows`); per member the unknowns are
+    /// x, y, amplitude (and radius, edge).
+    pub(super) fn build(
+        &mut self,
+        (samples, rows): (&[(f64, f64, f64)], &Rows),
+        (floor, floor_block): (&Floor, &FloorBlock),
+        (members, gone): (&[Member], &[bool]),
+        free: Free,
+    ) -> (DMatrix<f64>, DVector<f64>, f64) {
+        let per = free.per_member();
+        let n = FLOOR_TERMS + per * members.len();
+        self.model.clear();
+        self.model
+            .extend(samples.iter().map(|&(x, y, _)| floor.at((x, y))));
+        self.hits.resize_with(members.len(), Hits::default);
+        let live = members.iter().enumerate().filter(|(k, _)| !gone[*k]);
+        for (h, (k, m)) in self.hits.iter_mut().zip(live) {
+            let in_fit = InFit::new(m, FLOOR_TERMS + per * k, free);
+            h.fill(&in_fit, (samples, rows), free, &mut self.model);
+        }
+        let live = members.len() - gone.iter().filter(|g| **g).count();
+        let hits = &self.hits[..live];
+        self.residuals.clear();
+        self.residuals
+            .extend(samples.iter().zip(&self.model).map(|(s, m)| s.2 - m));
+        let cost = self.residuals.iter().fold(0.0, |c, r| c + r * r);
+        // Upper triangle only, accumulated flat; mirrored once at the end.
+        let (upper, jtr) = (&mut self.upper, &mut self.jtr);
+        upper.clear();
+        upper.resize(n * n, 0.0);
+        jtr.clear();
+        jtr.resize(n, 0.0);
+        for (&(x, y, _), &residual) in samples.iter().zip(&self.residuals) {
+            let d = [1.0, x - floor.centre.0, y - floor.centre.1];
+            for (t, di) in jtr.iter_mut().zip(d) {
+                *t += residual * di;
             }
         }
+        for (a, h) in hits.iter().enumerate() {
+            member_terms(h, (samples, &self.residuals), floor, (upper, jtr), n);
+            for b in &hits[a + 1..] {
+                cross_terms(h, b, upper, n);
+            }
+        }
+        for (i, line) in floor_block.iter().enumerate() {
+            upper[i * n..i * n + FLOOR_TERMS].copy_from_slice(line);
+        }
+        let jtj = DMatrix::from_fn(n, n, |i, j| {
+            let v = upper[i.min(j) * n + i.max(j)];
+            // Levenberg's touch of damping keeps a group whose members nearly coincide
+            // solvable.
+            if i == j {
+                v * (1.0 + 1e-3) + 1e-9
+            } else {
+                v
+            }
+        });
+        (jtj, DVector::from_column_slice(jtr), cost)
     }
-    let table = logistic_table();
-    let values: Vec<[f64; 5]> = offsets
-        .iter()
-        .map(|&(dx, dy, r_sq)| m.values(table, (dx, dy, r_sq.sqrt()), free))
-        .collect();
-    for (&i, v) in idx.iter().zip(&values) {
-        model[i] += m.amplitude * v[2];
-    }
-    Hits {
-        first: m.first,
-        len,
-        idx,
-        values,
+}
+
+impl Hits {
+    /// A member's pixels and Jacobian values, its light added to `model`: first the pixels
+    /// within its reach, then their values in one pass over them.
+    fn fill(
+        &mut self,
+        m: &InFit,
+        (samples, rows): (&[(f64, f64, f64)], &Rows),
+        free: Free,
+        model: &mut [f64],
+    ) {
+        self.first = m.first;
+        self.len = match free {
+            Free::Shape => 5,
+            Free::GuessedRadius if m.radius_free => 4,
+            Free::GuessedRadius => 3,
+        };
+        self.idx.clear();
+        self.offsets.clear();
+        // Widened by a hair so that rounding never leaves out a pixel within the reach.
+        let half = m.reach_sq.sqrt() + 1e-9;
+        for run in rows.within(samples, m.at, half) {
+            for i in run {
+                let (x, y, _) = samples[i];
+                let (dx, dy) = (x - m.at.x, y - m.at.y);
+                let r_sq = dx * dx + dy * dy;
+                if r_sq <= m.reach_sq {
+                    self.idx.push(i);
+                    self.offsets.push((dx, dy, r_sq));
+                }
+            }
+        }
+        let table = logistic_table();
+        self.values.clear();
+        self.values.extend(
+            self.offsets
+                .iter()
+                .map(|&(dx, dy, r_sq)| m.values(table, (dx, dy, r_sq.sqrt()), free)),
+        );
+        for (&i, v) in self.idx.iter().zip(&self.values) {
+            model[i] += m.amplitude * v[2];
+        }
     }
 }
 
