@@ -239,8 +239,12 @@ impl Tracks {
         self.live.get(&key).map_or([None; 2], |t| t.shapes)
     }
 
-    /// Whether the live track under `key` should learn its shapes again: every
-    /// `every` samples, so a particle that changes depth keeps its shape.
+    /// Whether the live track under `key` should learn its shapes again: when the samples it
+    /// keeps (at most the history a velocity window reaches) number a multiple of `every`, so
+    /// that a particle that has moved in depth since it was first learnt keeps its shape. A
+    /// track keeps a bounded history, so a steady one relearns only while its history fills
+    /// (with the default settings at its 10th and 20th samples), and one whose history has a
+    /// gap at every frame the count stays on a multiple.
     pub(crate) fn relearns(&self, key: u64, every: usize) -> bool {
         self.live
             .get(&key)
