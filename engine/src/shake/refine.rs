@@ -379,6 +379,16 @@ impl InFit {
         self.at(table, p).map_or(0.0, |[.., g]| self.amplitude * g)
     }
 
+    /// How many of [`InFit::values`] a fit with `free` takes: x, y and amplitude, then the
+    /// radius and edge where they are free.
+    fn unknowns(&self, free: Free) -> usize {
+        match free {
+            Free::Shape => 5,
+            Free::GuessedRadius if self.radius_free => 4,
+            Free::GuessedRadius => 3,
+        }
+    }
+
     /// The Jacobian values at a pixel `(dx, dy)` from the centre, at distance `r` within the
     /// reach: x, y, amplitude (the disc's height per unit amplitude), then radius and edge
     /// where free.

@@ -142,11 +142,7 @@ impl Hits {
         model: &mut [f64],
     ) {
         self.first = m.first;
-        self.len = match free {
-            Free::Shape => 5,
-            Free::GuessedRadius if m.radius_free => 4,
-            Free::GuessedRadius => 3,
-        };
+        self.len = m.unknowns(free);
         self.idx.clear();
         self.offsets.clear();
         // Widened by a hair so that rounding never leaves out a pixel within the reach.
@@ -177,7 +173,7 @@ impl Hits {
 
 /// A member's own share of the normal equations: its block, the floor's rows against it, and
 /// its `J^T r`. Only this member adds to these cells, so they are summed apart (in the same
-/// order) and stored once.
+/// order) and added once.
 fn member_terms(
     h: &Hits,
     (samples, residuals): (&[(f64, f64, f64)], &[f64]),
