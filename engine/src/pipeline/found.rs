@@ -192,10 +192,15 @@ impl Pipeline {
         if young.is_empty() {
             return;
         }
-        let mut shapes: Vec<[Option<Shape>; 2]> =
+        let shapes: Vec<[Option<Shape>; 2]> =
             young.iter().map(|(k, _)| self.tracks.shapes(*k)).collect();
-        let cameras = cameras(frame, (left, right), out);
-        for (c, (image, camera, detections)) in cameras.into_iter().enumerate() {
+        let disparity =
+            |[li, ri]: [usize; 2]| left.linked[li].feature.rect.x - right.linked[ri].feature.rect.x;
+        // Each camera learns from its own image only: one core each, as when measuring.
+        let learn = |shake: &mut CameraShake,
+                     c: usize,
+                     (image, camera, detections): (ImageView<'_>, &CameraOutput, &[Detection])|
+         -> Vec<Option<Shape>> {
             let seen = seen_by(camera, detections);
             let wanted: Vec<refine::Wanted> = young
                 .iter()
@@ -203,17 +208,21 @@ impl Pipeline {
                     detection: Some(features[c]),
                     predicted_px: None,
                     predicted_rect: seen[features[c]].rect,
-                    disparity_px: left.linked[features[0]].feature.rect.x
-                        - right.linked[features[1]].feature.rect.x,
+                    disparity_px: disparity(features),
                     relearn: false,
                 })
                 .collect();
             let mut own: Vec<Option<Shape>> = shapes.iter().map(|s| s[c]).collect();
-            self.shake[c].learn_shapes(image, &seen, &wanted, &mut own);
-            for (s, shape) in shapes.iter_mut().zip(own) {
-                s[c] = shape;
-            }
-        }
+            shake.learn_shapes(image, &seen, &wanted, &mut own);
+            own
+        };
+        let [left_camera, right_camera] = cameras(frame, (left, right), out);
+        let [shake_left, shake_right] = &mut self.shake;
+        let (own_left, own_right) = rayon::join(
+            || learn(shake_left, 0, left_camera),
+            || learn(shake_right, 1, right_camera),
+        );
+        let shapes = own_left.into_iter().zip(own_right).map(|(l, r)| [l, r]);
         for ((k, _), s) in young.iter().zip(shapes) {
             self.tracks.set_shapes(*k, s);
         }
