@@ -1,14 +1,16 @@
 //! Overlapping particles measured with what their tracks know. Each track learns its
 //! particle's image shape in each camera from the frames where the particle stands alone: a
 //! soft-edged disc, `a / (1 + exp((r - radius) / edge))`, which is a blurred spot for a small
-//! radius and a sharp disc for a large one. Where the particle overlaps a neighbour, the group's
-//! pixels are fitted with every member's shape held at what its track learnt and only the
-//! centres and amplitudes free, on a sloped background. A free fit of two overlapping images
-//! trades width against position (the reason a cut's centroids are not measured); with the
-//! widths known, the centres are pinned.
+//! radius and a sharp disc for a large one. Where the particle overlaps a neighbour, it is
+//! fitted with its shape held at what its track learnt and only its centre and amplitude free,
+//! on a sloped background, against its pixels with its neighbours' modelled images taken out
+//! (which are fitted the same way, in turn, until none moves). A free fit of two overlapping
+//! images trades width against position (the reason a cut's centroids are not measured); with
+//! the widths known, the centres are pinned.
 
 mod group;
 mod normal;
+mod sweep;
 
 use group::{members_of, Group};
 use normal::{Normal, Rows};
@@ -93,7 +95,6 @@ struct Member {
 struct Fitted {
     members: Vec<Member>,
     rms: f64,
-    floor: Floor,
     settled: bool,
 }
 
@@ -147,40 +148,6 @@ impl Floor {
 
 /// See [`Floor::block`].
 type FloorBlock = [[f64; FLOOR_TERMS]; FLOOR_TERMS];
-
-impl Fitted {
-    /// Each of `samples`' residual from the fitted model.
-    fn residuals(&self, samples: &[(f64, f64, f64)]) -> Vec<f64> {
-        let table = logistic_table();
-        let in_fit: Vec<InFit> = self
-            .members
-            .iter()
-            .map(|m| InFit::new(m, 0, Free::GuessedRadius))
-            .collect();
-        samples
-            .iter()
-            .map(|&(x, y, value)| {
-                let model: f64 = in_fit.iter().map(|m| m.light(table, (x, y))).sum();
-                value - self.floor.at((x, y)) - model
-            })
-            .collect()
-    }
-}
-
-/// The RMS of `residuals` (index for index with `samples`) over the samples within any of the
-/// boxes `own` (centre, half-width): what a fit leaves on some particles' pixels.
-fn rms_within(samples: &[(f64, f64, f64)], residuals: &[f64], own: &[(PixelPoint, f64)]) -> f64 {
-    let inside = |x: f64, y: f64| {
-        own.iter()
-            .any(|(c, half)| (x - c.x).abs() <= *half && (y - c.y).abs() <= *half)
-    };
-    let (sum, count) = samples
-        .iter()
-        .zip(residuals)
-        .filter(|(p, _)| inside(p.0, p.1))
-        .fold((0.0, 0usize), |(sum, n), (_, r)| (sum + r * r, n + 1));
-    (sum / count.max(1) as f64).sqrt()
-}
 
 /// The shape of a particle standing alone at `at` (equivalent diameter `diameter_px`), and
 /// the RMS residual the fit left; `None` where the fit fails or ends implausibly. A shape
@@ -329,7 +296,6 @@ fn fit(samples: &[(f64, f64, f64)], seeds: &[Member], free: Free) -> Option<Fitt
     Some(Fitted {
         members,
         rms,
-        floor,
         settled: last_step < SETTLED_STEP_IN_REACHES,
     })
 }
@@ -541,7 +507,8 @@ impl CameraShake {
     /// hidden particle is near) or where it has no detection of its own: every neighbour
     /// seeded where its track puts it (a clear detection at its centroid, another at its
     /// prediction; a detection no track knows at its centroid, as a disc of its size), shapes
-    /// held, centres and amplitudes free. A track that has not learnt its shape in this camera
+    /// held, centres and amplitudes free, each fitted against the others' light in turn. A
+    /// track that has not learnt its shape in this camera
     /// borrows the one it learnt in the other (`other_camera`): the two see the particle from
     /// nearly the same distance.
     pub(crate) fn measure(
@@ -570,8 +537,8 @@ impl CameraShake {
             &near,
             (edge_px, widest_px, MAX_RESIDUAL_RATIO * lone_rms),
         );
-        group
-            .measure_all()
+        let measured = group.measure_all();
+        measured
             .into_iter()
             .zip(wanted)
             .map(|(m, w)| m.unwrap_or_else(|| unmeasured(w)))
@@ -699,17 +666,17 @@ impl Learnt {
     }
 }
 
-/// Each member's box (centre, half-width) a fit sees.
-fn boxes(members: &[Member]) -> Vec<(PixelPoint, f64)> {
-    members
-        .iter()
-        .map(|m| (m.at, m.shape.radius_px + MARGIN_PX))
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each member's box (centre, half-width) a fit sees.
+    fn boxes(members: &[Member]) -> Vec<(PixelPoint, f64)> {
+        members
+            .iter()
+            .map(|m| (m.at, m.shape.radius_px + MARGIN_PX))
+            .collect()
+    }
 
     /// A group of overlapping particles fitted, each seeded at `at` with the shape its track
     /// learnt (only centres and amplitudes free).
@@ -984,9 +951,33 @@ mod tests {
     }
 
     #[test]
+    fn overlapping_particles_swept_in_turn_are_pinned_where_they_are() {
+        // On a floor sloping along both axes, seeded most of a pixel off: each particle's
+        // fit sees the other's light only as its model, so they are pinned only once both
+        // have settled.
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let pixels = draw_on(44, 30, &truth, (0.8, -0.5));
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let mut sweep = sweep::Sweep::default();
+        sweep.add(7, disc(21.0, 15.0));
+        sweep.add(3, disc(23.6, 16.8));
+        sweep.add(7, disc(30.0, 30.0));
+        sweep.run(image);
+        for (id, t) in [(7, truth[0]), (3, truth[1])] {
+            let i = sweep.element(id).expect("added");
+            let c = sweep.member(i).at;
+            assert!(sweep.fitted(i) && sweep.settled(i));
+            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.03, "{c:?} vs {t:?}");
+            assert!(sweep.rms_on(i) < 1.0, "{}", sweep.rms_on(i));
+        }
+        assert!(sweep.element(5).is_none());
+    }
+
+    #[test]
     fn a_row_of_overlapping_particles_is_fitted_together_and_each_pinned() {
-        // Three cut detections in a row: the first and last groups share the middle particle,
-        // so all three are one fit.
+        // Three cut detections in a row: each particle's light reaches both of its neighbours'
+        // pixels, the first's and the last's through the middle one's, which is pinned only
+        // with both of them taken out.
         let truth = [disc(14.3, 15.6), disc(18.4, 16.1), disc(22.6, 15.2)];
         let pixels = draw(38, 30, &truth);
         let image = ImageView::new(38, 30, &pixels).expect("sized");

@@ -1,11 +1,9 @@
-//! Which particles one camera's shake fits together, and what each fit says of them: every
-//! predicted particle's group (its own image and the tracked ones that may touch it), groups
-//! that share a particle fitted as one, and each particle judged on its own group's pixels.
+//! Which particles one camera's shake fits, and what the fit says of each: every predicted
+//! particle's group (its own image and the tracked ones that may touch it), all groups measured
+//! at once in sweeps ([`Sweep`]), and each particle judged as a fit of its group would be.
 
-use super::{
-    boxes, fit, rms_within, stayed, window, Fitted, Free, Measured, Member, Neighbourhood, Seen,
-    Shape, Wanted, MARGIN_PX,
-};
+use super::sweep::Sweep;
+use super::{stayed, Fitted, Measured, Member, Neighbourhood, Seen, Shape, Wanted, MARGIN_PX};
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
@@ -73,6 +71,7 @@ struct Subject {
     ids: Vec<usize>,
     hidden: Vec<usize>,
     unknown: Vec<Member>,
+    unknown_ids: Vec<usize>,
 }
 
 impl<'a> Group<'a> {
@@ -105,106 +104,74 @@ impl<'a> Group<'a> {
         }
     }
 
-    /// Every wanted particle measured among its neighbours (`None`: not fitted). Groups that
-    /// share a particle are fitted as one, once; a particle whose verdict that fit does not
-    /// give is fitted again with its own group alone (unless its group is the whole of the
-    /// joint fit, which was then its own group's fit and judged as such), then with the
-    /// detections no track knows.
+    /// Every wanted particle measured among its neighbours (`None`: not fitted): all of one
+    /// camera's fitted particles and their tracked neighbours in one sweep; those whose verdict
+    /// that does not give, again with the detections no track knows near them (most are
+    /// fragments of a tracked particle's image, and would take its light where it is clear).
     pub(super) fn measure_all(&self) -> Vec<Option<Measured>> {
         let subjects: Vec<Option<Subject>> =
             (0..self.wanted.len()).map(|k| self.subject(k)).collect();
+        let all: Vec<&Subject> = subjects.iter().flatten().collect();
         let mut measured = vec![None; subjects.len()];
-        let mut fitted_alone = vec![false; subjects.len()];
-        for cluster in self.clusters(&subjects) {
-            let group: Vec<&Subject> = cluster
-                .iter()
-                .filter_map(|&k| subjects[k].as_ref())
-                .collect();
-            if group.len() > 1 {
-                for (k, m, alone) in self.measure_together(&group) {
-                    measured[k] = m;
-                    fitted_alone[k] = alone;
-                }
-            }
-            for s in group {
-                if measured[s.k].is_none() {
-                    measured[s.k] = self.measure(s, fitted_alone[s.k]);
-                }
-            }
+        for (s, m) in all.iter().zip(self.swept(&all, false)) {
+            measured[s.k] = m;
+        }
+        let again: Vec<&Subject> = all
+            .into_iter()
+            .filter(|s| measured[s.k].is_none() && !s.unknown.is_empty())
+            .collect();
+        for (s, m) in again.iter().zip(self.swept(&again, true)) {
+            measured[s.k] = m;
         }
         measured
     }
 
-    /// The wanted particles with a fit, in groups that share a particle.
-    fn clusters(&self, subjects: &[Option<Subject>]) -> Vec<Vec<usize>> {
-        let mut parent: Vec<usize> = (0..subjects.len()).collect();
-        fn root(parent: &mut [usize], mut i: usize) -> usize {
-            while parent[i] != i {
-                parent[i] = parent[parent[i]];
-                i = parent[i];
-            }
-            i
-        }
-        let mut holder = vec![usize::MAX; self.seen.len() + self.wanted.len()];
-        for s in subjects.iter().flatten() {
-            for &id in &s.ids {
-                if holder[id] == usize::MAX {
-                    holder[id] = s.k;
-                } else {
-                    let (a, b) = (root(&mut parent, holder[id]), root(&mut parent, s.k));
-                    parent[a] = b;
-                }
+    /// The verdicts on `subjects` of one sweep of their groups (with the detections no track
+    /// knows where `with_unknown`).
+    fn swept(&self, subjects: &[&Subject], with_unknown: bool) -> Vec<Option<Measured>> {
+        let mut sweep = Sweep::default();
+        for s in subjects {
+            for (&id, m) in self.group_of(s, with_unknown) {
+                sweep.add(id, *m);
             }
         }
-        let mut clusters: Vec<Vec<usize>> = vec![Vec::new(); subjects.len()];
-        for s in subjects.iter().flatten() {
-            let r = root(&mut parent, s.k);
-            clusters[r].push(s.k);
-        }
-        clusters.retain(|c| !c.is_empty());
-        clusters
+        sweep.run(self.image);
+        subjects
+            .iter()
+            .map(|s| self.judge_swept(s, &sweep, with_unknown))
+            .collect()
     }
 
-    /// Groups that share particles fitted as one; each one's verdict judged on its own
-    /// members and its own pixels, and whether its group is the whole of the joint fit (which
-    /// was then its own group's fit, judged also as that fit would be: a particle without a
-    /// detection on its own pixels alone).
-    fn measure_together(&self, group: &[&Subject]) -> Vec<(usize, Option<Measured>, bool)> {
-        let mut slot = std::collections::HashMap::new();
-        let mut seeds = Vec::new();
-        for s in group {
-            for (&id, m) in s.ids.iter().zip(&s.members) {
-                slot.entry(id).or_insert_with(|| {
-                    seeds.push(*m);
-                    seeds.len() - 1
-                });
-            }
+    /// A subject's group: its own particle and tracked neighbours, with the detections no
+    /// track knows where `with_unknown`, by id.
+    fn group_of<'s>(
+        &self,
+        s: &'s Subject,
+        with_unknown: bool,
+    ) -> impl Iterator<Item = (&'s usize, &'s Member)> {
+        let unknown = if with_unknown { s.unknown.len() } else { 0 };
+        let tracked = s.ids.iter().zip(&s.members);
+        tracked.chain(s.unknown_ids.iter().zip(&s.unknown).take(unknown))
+    }
+
+    /// What a sweep says of a subject's particle, judged as a fit of its group would be: on
+    /// the residual its own pixels are left with, its group's steps settled.
+    fn judge_swept(&self, s: &Subject, sweep: &Sweep, with_unknown: bool) -> Option<Measured> {
+        let (elements, seeds): (Vec<Option<usize>>, Vec<Member>) = self
+            .group_of(s, with_unknown)
+            .map(|(&id, m)| (sweep.element(id), *m))
+            .unzip();
+        let elements: Vec<usize> = elements.into_iter().collect::<Option<_>>()?;
+        let own = elements[0];
+        if !sweep.fitted(own) {
+            return None;
         }
-        let samples = window(self.image, &boxes(&seeds));
-        let Some(fitted) = fit(&samples, &seeds, Free::GuessedRadius) else {
-            return Vec::new();
+        let fitted = Fitted {
+            members: elements.iter().map(|&i| sweep.member(i)).collect(),
+            rms: sweep.rms_on(own),
+            settled: elements.iter().all(|&i| sweep.settled(i)),
         };
-        let residuals = fitted.residuals(&samples);
-        let judged_on = |s: &Subject, own: &[Member]| {
-            let fitted = Fitted {
-                members: s.ids.iter().map(|id| fitted.members[slot[id]]).collect(),
-                rms: rms_within(&samples, &residuals, &boxes(own)),
-                floor: fitted.floor,
-                settled: fitted.settled,
-            };
-            self.judge(s, &s.members, fitted)
-        };
-        group
-            .iter()
-            .map(|s| {
-                let alone = s.ids.len() == seeds.len();
-                let mut measured = judged_on(s, &s.members);
-                if measured.is_none() && alone && self.wanted[s.k].detection.is_none() {
-                    measured = judged_on(s, &s.members[..1]);
-                }
-                (s.k, measured, alone)
-            })
-            .collect()
+        self.judge(s, &seeds, fitted)
     }
 
     /// Wanted particle `k`'s fit, `None` where it is not fitted (no shape known, or a clear
@@ -224,7 +191,7 @@ impl<'a> Group<'a> {
                 (own, false, w.predicted_rect, self.seen.len() + k)
             }
         };
-        let (members, ids, unknown, hidden) = self.neighbours(k, (own, id), c);
+        let (members, ids, (unknown, unknown_ids), hidden) = self.neighbours(k, (own, id), c);
         if clear && hidden.is_empty() {
             return None;
         }
@@ -234,43 +201,8 @@ impl<'a> Group<'a> {
             ids,
             hidden,
             unknown,
+            unknown_ids,
         })
-    }
-
-    /// Wanted particle `k` measured in a fit of its own group: the tracked particles' models
-    /// first (unless that fit was already made, `fitted_alone`); detections no track knows
-    /// join only where those do not explain the pixels (most are fragments of a tracked
-    /// particle's image).
-    fn measure(&self, s: &Subject, fitted_alone: bool) -> Option<Measured> {
-        let measured = if fitted_alone {
-            None
-        } else {
-            self.refit(s, &s.members)
-                .and_then(|f| self.judge(s, &s.members, f))
-        };
-        if measured.is_some() || s.unknown.is_empty() {
-            return measured;
-        }
-        let mut members = s.members.clone();
-        members.extend(&s.unknown);
-        self.refit(s, &members)
-            .and_then(|f| self.judge(s, &members, f))
-    }
-
-    /// A group (`members`, the subject's own first) fitted, with the RMS residual its verdict
-    /// rests on. A particle without a detection is judged on its own pixels: whether it is
-    /// there is what they tell, while its neighbours' pixels may hold light no track knows
-    /// (their own neighbours, outside the group). A detected particle is judged on the group's
-    /// pixels: a neighbour the fit does not explain may pull its centre, and its detection then
-    /// stands as detected.
-    fn refit(&self, s: &Subject, members: &[Member]) -> Option<Fitted> {
-        let samples = window(self.image, &boxes(members));
-        let mut fitted = fit(&samples, members, Free::GuessedRadius)?;
-        if self.wanted[s.k].detection.is_none() {
-            let own = boxes(&members[..1]);
-            fitted.rms = rms_within(&samples, &fitted.residuals(&samples), &own);
-        }
-        Some(fitted)
     }
 
     /// What a fit of `members` (the subject's group, perhaps with unknown detections) says of
@@ -327,14 +259,19 @@ impl<'a> Group<'a> {
         k: usize,
         (own, id): (Member, usize),
         c: RectPoint,
-    ) -> (Vec<Member>, Vec<usize>, Vec<Member>, Vec<usize>) {
+    ) -> (
+        Vec<Member>,
+        Vec<usize>,
+        (Vec<Member>, Vec<usize>),
+        Vec<usize>,
+    ) {
         // The fit sees a box of half-width radius + margin around the particle's centre.
         let reach = (own.shape.radius_px + MARGIN_PX) * std::f64::consts::SQRT_2;
         let own_detection = self.wanted[k].detection;
         let touches = |p: RectPoint, other: &Member| {
             (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
         };
-        let (mut tracked, mut ids, mut unknown) = (vec![own], vec![id], Vec::new());
+        let (mut tracked, mut ids, mut unknown) = (vec![own], vec![id], (Vec::new(), Vec::new()));
         for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
             let other = match self.members.claimed[j] {
                 _ if Some(j) == own_detection => continue,
@@ -342,7 +279,8 @@ impl<'a> Group<'a> {
                 None => {
                     let m = guessed(self.image, &self.seen[j], self.edge_px, self.widest_px);
                     if touches(p, &m) {
-                        unknown.push(m);
+                        unknown.0.push(m);
+                        unknown.1.push(j);
                     }
                     continue;
                 }

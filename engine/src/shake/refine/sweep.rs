@@ -1,0 +1,244 @@
+//! One camera's overlapping particles measured in sweeps: each particle in turn fitted alone
+//! against its pixels with its neighbours' modelled images taken out, until no particle
+//! moves. A particle's fit is then small (its centre, amplitude, a guessed radius, and the
+//! floor under it) however many particles touch in a chain, and every particle is fitted once
+//! per sweep, not once in every group it belongs to.
+
+use std::collections::HashMap;
+
+use nalgebra::{SMatrix, SVector};
+
+use super::{
+    logistic_table, window, Floor, Free, InFit, Member, CONVERGED_STEP_PX, FLOOR_TERMS,
+    GUESSED_RADIUS_RANGE, MARGIN_PX, MAX_ITERATIONS, SETTLED_STEP_IN_REACHES,
+};
+use crate::geometry::RectPoint;
+use crate::spatial::{PointGrid, GRID_CELL_PX};
+use crate::ImageView;
+
+/// A step's unknowns at most: the floor's, then x, y, amplitude and a guessed radius.
+const STEP_TERMS: usize = FLOOR_TERMS + 4;
+
+/// The particles of one camera's model, by id, as the sweeps leave them.
+#[derive(Default)]
+pub(super) struct Sweep {
+    index: HashMap<usize, usize>,
+    seeds: Vec<Member>,
+    now: Vec<Member>,
+    floors: Vec<Floor>,
+    /// Each particle's pixels (its seed's box).
+    samples: Vec<Vec<(f64, f64, f64)>>,
+    /// Per particle, the others whose light reaches its box.
+    touching: Vec<Vec<usize>>,
+    last_move_px: Vec<f64>,
+    gone: Vec<bool>,
+    failed: Vec<bool>,
+    /// The neighbours' models of the particle a step fits (kept across steps).
+    others: Vec<InFit>,
+}
+
+impl Sweep {
+    /// Adds particle `id` seeded as `seed` (once; a second add of the same id is ignored).
+    pub(super) fn add(&mut self, id: usize, seed: Member) {
+        if let std::collections::hash_map::Entry::Vacant(e) = self.index.entry(id) {
+            e.insert(self.seeds.len());
+            self.seeds.push(seed);
+        }
+    }
+
+    /// Every particle fitted in turn until no particle moves by more than
+    /// [`CONVERGED_STEP_PX`] in a sweep, or for as many sweeps as a fit takes steps.
+    pub(super) fn run(&mut self, image: ImageView<'_>) {
+        self.prepare(image);
+        let n = self.seeds.len();
+        let mut active = vec![true; n];
+        for _ in 0..MAX_ITERATIONS {
+            let mut moved = vec![false; n];
+            for i in 0..n {
+                if active[i] && !self.gone[i] && !self.failed[i] {
+                    moved[i] = self.step(i) >= CONVERGED_STEP_PX;
+                }
+            }
+            if !moved.iter().any(|&m| m) {
+                break;
+            }
+            // A particle is fitted again where it or a neighbour moved.
+            for i in 0..n {
+                active[i] = moved[i] || self.touching[i].iter().any(|&j| moved[j]);
+            }
+        }
+    }
+
+    /// Each particle's pixels and the particles whose light reaches them.
+    fn prepare(&mut self, image: ImageView<'_>) {
+        let n = self.seeds.len();
+        self.now = self.seeds.clone();
+        self.last_move_px = vec![f64::INFINITY; n];
+        self.gone = vec![false; n];
+        self.failed = vec![false; n];
+        self.samples = self
+            .seeds
+            .iter()
+            .map(|m| window(image, &[(m.at, half_px(m))]))
+            .collect();
+        self.floors = self.samples.iter().map(|s| Floor::under(s)).collect();
+        // The grid takes points of any plane: these are raw pixels.
+        let grid = PointGrid::new(
+            self.seeds.iter().enumerate().map(|(i, m)| {
+                (
+                    RectPoint {
+                        x: m.at.x,
+                        y: m.at.y,
+                    },
+                    i,
+                )
+            }),
+            GRID_CELL_PX,
+        );
+        let light_reach = |m: &Member| m.shape.reach_px() + MARGIN_PX;
+        let farthest = self.seeds.iter().map(light_reach).fold(0.0, f64::max);
+        self.touching = self
+            .seeds
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let half = half_px(m);
+                grid.near(m.at.x, m.at.y, (half + farthest) * std::f64::consts::SQRT_2)
+                    .filter(|&&(p, j)| {
+                        let reach = half + light_reach(&self.seeds[j]);
+                        j != i && (p.x - m.at.x).abs() <= reach && (p.y - m.at.y).abs() <= reach
+                    })
+                    .map(|&(_, j)| j)
+                    .collect()
+            })
+            .collect();
+    }
+
+    /// One Gauss-Newton step of particle `i`'s fit (its floor, centre, amplitude and a
+    /// guessed radius) against its pixels with its neighbours' light taken out; how far it
+    /// moved, pixels.
+    fn step(&mut self, i: usize) -> f64 {
+        let table = logistic_table();
+        let mut others = std::mem::take(&mut self.others);
+        others.clear();
+        others.extend(
+            self.touching[i]
+                .iter()
+                .filter(|&&j| !self.gone[j])
+                .map(|&j| InFit::new(&self.now[j], 0, Free::GuessedRadius)),
+        );
+        let floor = self.floors[i];
+        let own = InFit::new(&self.now[i], FLOOR_TERMS, Free::GuessedRadius);
+        let unknowns = FLOOR_TERMS + own.unknowns(Free::GuessedRadius);
+        let mut jtj = SMatrix::<f64, STEP_TERMS, STEP_TERMS>::zeros();
+        let mut jtr = SVector::<f64, STEP_TERMS>::zeros();
+        for &(x, y, v) in &self.samples[i] {
+            let mut j = SVector::<f64, STEP_TERMS>::zeros();
+            j[0] = 1.0;
+            j[1] = x - floor.centre.0;
+            j[2] = y - floor.centre.1;
+            let mut model =
+                floor.at((x, y)) + others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
+            if let Some([dx, dy, r, _, g]) = own.at(table, (x, y)) {
+                model += own.amplitude * g;
+                let values = own.values(table, (dx, dy, r), Free::GuessedRadius);
+                for (t, value) in values[..STEP_TERMS - FLOOR_TERMS].iter().enumerate() {
+                    j[FLOOR_TERMS + t] = *value;
+                }
+            }
+            jtj.syger(1.0, &j, &j, 1.0);
+            jtr.axpy(v - model, &j, 1.0);
+        }
+        self.others = others;
+        // An unknown the step does not take (a learnt radius) is held where it is.
+        for t in unknowns..STEP_TERMS {
+            jtj[(t, t)] = 1.0;
+            jtr[t] = 0.0;
+        }
+        let solved = (self.samples[i].len() > 2 * unknowns)
+            .then(|| jtj.fill_upper_triangle_with_lower_triangle())
+            .and_then(|()| jtj.cholesky())
+            .map(|c| c.solve(&jtr));
+        let Some(step) = solved.filter(|s| s.iter().all(|v| v.is_finite())) else {
+            self.failed[i] = true;
+            return 0.0;
+        };
+        self.take_step(i, floor, &step)
+    }
+
+    /// Particle `i` moved by `step` (floor level and slopes, centre, amplitude, radius); how
+    /// far it moved, pixels.
+    fn take_step(&mut self, i: usize, mut floor: Floor, step: &SVector<f64, STEP_TERMS>) -> f64 {
+        floor.level += step[0];
+        floor.slope.0 += step[1];
+        floor.slope.1 += step[2];
+        let seed = self.seeds[i];
+        let mut m = self.now[i];
+        m.at.x += step[3];
+        m.at.y += step[4];
+        m.shape.amplitude += step[5];
+        if m.shape.guessed {
+            let (low, high) = GUESSED_RADIUS_RANGE;
+            let r = seed.shape.radius_px;
+            m.shape.radius_px = (m.shape.radius_px + step[6]).clamp(low * r, high * r);
+        }
+        // A particle pushed further than its reach from its seed has no light there: gone.
+        if (m.at.x - seed.at.x).hypot(m.at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX {
+            self.gone[i] = true;
+            m.shape.amplitude = 0.0;
+        }
+        let moved = step[3].abs() + step[4].abs();
+        self.now[i] = m;
+        self.floors[i] = floor;
+        self.last_move_px[i] = moved;
+        moved
+    }
+
+    /// Particle `id`'s index, if it was added.
+    pub(super) fn element(&self, id: usize) -> Option<usize> {
+        self.index.get(&id).copied()
+    }
+
+    /// Particle `i` as the sweeps left it (no light where it is gone).
+    pub(super) fn member(&self, i: usize) -> Member {
+        self.now[i]
+    }
+
+    /// Whether particle `i` has a fit (none where a step of it failed).
+    pub(super) fn fitted(&self, i: usize) -> bool {
+        !self.failed[i]
+    }
+
+    /// Whether particle `i`'s last step was small against its image's reach (see
+    /// [`SETTLED_STEP_IN_REACHES`]).
+    pub(super) fn settled(&self, i: usize) -> bool {
+        self.gone[i]
+            || self.last_move_px[i] / self.seeds[i].shape.reach_px() < SETTLED_STEP_IN_REACHES
+    }
+
+    /// The RMS residual on particle `i`'s pixels of the model: its floor and every particle
+    /// whose light reaches them.
+    pub(super) fn rms_on(&self, i: usize) -> f64 {
+        let table = logistic_table();
+        let floor = self.floors[i];
+        let lit: Vec<InFit> = std::iter::once(&i)
+            .chain(&self.touching[i])
+            .filter(|&&j| !self.gone[j])
+            .map(|&j| InFit::new(&self.now[j], 0, Free::GuessedRadius))
+            .collect();
+        let samples = &self.samples[i];
+        let sum: f64 = samples
+            .iter()
+            .map(|&(x, y, v)| {
+                let light: f64 = lit.iter().map(|o| o.light(table, (x, y))).sum();
+                (v - floor.at((x, y)) - light).powi(2)
+            })
+            .sum();
+        (sum / samples.len().max(1) as f64).sqrt()
+    }
+}
+
+/// Half the width of a particle's box.
+fn half_px(m: &Member) -> f64 {
+    m.shape.radius_px + MARGIN_PX
+}
