@@ -6,18 +6,14 @@
 
 use std::collections::HashMap;
 
-use nalgebra::{SMatrix, SVector};
-
+use super::step::Fit;
 use super::{
-    logistic_table, window, Floor, Free, InFit, Member, CONVERGED_STEP_PX, FLOOR_TERMS,
-    GUESSED_RADIUS_RANGE, MARGIN_PX, MAX_ITERATIONS, SETTLED_STEP_IN_REACHES,
+    logistic_table, window, Floor, Free, InFit, Member, CONVERGED_STEP_PX, MARGIN_PX,
+    MAX_ITERATIONS, SETTLED_STEP_IN_REACHES,
 };
 use crate::geometry::RectPoint;
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
-
-/// A step's unknowns at most: the floor's, then x, y, amplitude and a guessed radius.
-const STEP_TERMS: usize = FLOOR_TERMS + 4;
 
 /// The particles of one camera's model, by id, as the sweeps leave them.
 #[derive(Default)]
@@ -118,80 +114,40 @@ impl Sweep {
     /// guessed radius) against its pixels with its neighbours' light taken out; how far it
     /// moved, pixels.
     fn step(&mut self, i: usize) -> f64 {
-        let table = logistic_table();
         let mut others = std::mem::take(&mut self.others);
         others.clear();
         others.extend(
             self.touching[i]
                 .iter()
                 .filter(|&&j| !self.gone[j])
-                .map(|&j| InFit::new(&self.now[j], 0, Free::GuessedRadius)),
+                .map(|&j| InFit::new(&self.now[j], Free::GuessedRadius)),
         );
-        let floor = self.floors[i];
-        let own = InFit::new(&self.now[i], FLOOR_TERMS, Free::GuessedRadius);
-        let unknowns = FLOOR_TERMS + own.unknowns(Free::GuessedRadius);
-        let mut jtj = SMatrix::<f64, STEP_TERMS, STEP_TERMS>::zeros();
-        let mut jtr = SVector::<f64, STEP_TERMS>::zeros();
-        for &(x, y, v) in &self.samples[i] {
-            let mut j = SVector::<f64, STEP_TERMS>::zeros();
-            j[0] = 1.0;
-            j[1] = x - floor.centre.0;
-            j[2] = y - floor.centre.1;
-            let mut model =
-                floor.at((x, y)) + others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            if let Some([dx, dy, r, _, g]) = own.at(table, (x, y)) {
-                model += own.amplitude * g;
-                let values = own.values(table, (dx, dy, r), Free::GuessedRadius);
-                for (t, value) in values[..STEP_TERMS - FLOOR_TERMS].iter().enumerate() {
-                    j[FLOOR_TERMS + t] = *value;
-                }
-            }
-            jtj.syger(1.0, &j, &j, 1.0);
-            jtr.axpy(v - model, &j, 1.0);
-        }
+        let seed = self.seeds[i];
+        let mut fit = Fit {
+            member: self.now[i],
+            floor: self.floors[i],
+        };
+        let stepped = fit.step(
+            &self.samples[i],
+            &others,
+            Free::GuessedRadius,
+            seed.shape.radius_px,
+        );
         self.others = others;
-        // An unknown the step does not take (a learnt radius) is held where it is.
-        for t in unknowns..STEP_TERMS {
-            jtj[(t, t)] = 1.0;
-            jtr[t] = 0.0;
-        }
-        let solved = (self.samples[i].len() > 2 * unknowns)
-            .then(|| jtj.fill_upper_triangle_with_lower_triangle())
-            .and_then(|()| jtj.cholesky())
-            .map(|c| c.solve(&jtr));
-        let Some(step) = solved.filter(|s| s.iter().all(|v| v.is_finite())) else {
+        let Some(stepped) = stepped else {
             self.failed[i] = true;
             return 0.0;
         };
-        self.take_step(i, floor, &step)
-    }
-
-    /// Particle `i` moved by `step` (floor level and slopes, centre, amplitude, radius); how
-    /// far it moved, pixels.
-    fn take_step(&mut self, i: usize, mut floor: Floor, step: &SVector<f64, STEP_TERMS>) -> f64 {
-        floor.level += step[0];
-        floor.slope.0 += step[1];
-        floor.slope.1 += step[2];
-        let seed = self.seeds[i];
-        let mut m = self.now[i];
-        m.at.x += step[3];
-        m.at.y += step[4];
-        m.shape.amplitude += step[5];
-        if m.shape.guessed {
-            let (low, high) = GUESSED_RADIUS_RANGE;
-            let r = seed.shape.radius_px;
-            m.shape.radius_px = (m.shape.radius_px + step[6]).clamp(low * r, high * r);
-        }
+        let mut m = fit.member;
         // A particle pushed further than its reach from its seed has no light there: gone.
         if (m.at.x - seed.at.x).hypot(m.at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX {
             self.gone[i] = true;
             m.shape.amplitude = 0.0;
         }
-        let moved = step[3].abs() + step[4].abs();
         self.now[i] = m;
-        self.floors[i] = floor;
-        self.last_move_px[i] = moved;
-        moved
+        self.floors[i] = fit.floor;
+        self.last_move_px[i] = stepped.moved_px;
+        stepped.moved_px
     }
 
     /// Particle `id`'s index, if it was added.
@@ -224,7 +180,7 @@ impl Sweep {
         let lit: Vec<InFit> = std::iter::once(&i)
             .chain(&self.touching[i])
             .filter(|&&j| !self.gone[j])
-            .map(|&j| InFit::new(&self.now[j], 0, Free::GuessedRadius))
+            .map(|&j| InFit::new(&self.now[j], Free::GuessedRadius))
             .collect();
         let samples = &self.samples[i];
         let sum: f64 = samples

@@ -1,0 +1,123 @@
+//! One Gauss-Newton step of one particle's fit: its floor (a level and its slopes across its
+//! box), its centre and amplitude, and its radius and edge where they are free, against its
+//! pixels with its neighbours' modelled images taken out. Every fit of the shake is made of
+//! these steps: a lone particle's shape, learnt, and each particle of a sweep in turn.
+
+use nalgebra::{SMatrix, SVector};
+
+use super::{logistic_table, Floor, Free, InFit, Member, FLOOR_TERMS, GUESSED_RADIUS_RANGE};
+
+/// A step's unknowns at most: the floor's, then x, y, amplitude, radius and edge.
+const TERMS: usize = FLOOR_TERMS + 5;
+
+/// A particle and the floor under it, as a fit leaves them.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Fit {
+    pub(super) member: Member,
+    pub(super) floor: Floor,
+}
+
+/// What one step did: how far it moved the centre (pixels, along x plus along y), and the
+/// sum of squared residuals the fit had before it.
+pub(super) struct Stepped {
+    pub(super) moved_px: f64,
+    pub(super) cost: f64,
+}
+
+impl Fit {
+    /// One step against `samples` (x, y, grey level) with `others`' light taken out, the
+    /// radius and edge free as `free` says (a guessed radius kept within
+    /// [`GUESSED_RADIUS_RANGE`] of `seed_radius_px`); `None` where the pixels do not pin the
+    /// unknowns (too few of them, or a singular system).
+    pub(super) fn step(
+        &mut self,
+        samples: &[(f64, f64, f64)],
+        others: &[InFit],
+        free: Free,
+        seed_radius_px: f64,
+    ) -> Option<Stepped> {
+        let (step, cost) = match free {
+            Free::Shape => self.solve::<{ FLOOR_TERMS + 5 }>(samples, others, Free::Shape)?,
+            Free::GuessedRadius => {
+                self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::GuessedRadius)?
+            }
+        };
+        if step.iter().any(|v| !v.is_finite()) {
+            return None;
+        }
+        self.floor.level += step[0];
+        self.floor.slope.0 += step[1];
+        self.floor.slope.1 += step[2];
+        let m = &mut self.member;
+        m.at.x += step[3];
+        m.at.y += step[4];
+        m.shape.amplitude += step[5];
+        match free {
+            Free::Shape => {
+                m.shape.radius_px = (m.shape.radius_px + step[6]).max(0.0);
+                m.shape.edge_px = (m.shape.edge_px + step[7]).clamp(0.05, 5.0);
+            }
+            Free::GuessedRadius if m.shape.guessed => {
+                let (low, high) = GUESSED_RADIUS_RANGE;
+                m.shape.radius_px = (m.shape.radius_px + step[6])
+                    .clamp(low * seed_radius_px, high * seed_radius_px);
+            }
+            Free::GuessedRadius => {}
+        }
+        Some(Stepped {
+            moved_px: step[3].abs() + step[4].abs(),
+            cost,
+        })
+    }
+
+    /// The step (floor, x, y, amplitude, then radius and edge where `N` has room for them)
+    /// and the sum of squared residuals over `samples` before it; an unknown the fit does not
+    /// take is held. `N` is the unknowns' count at most, so that the sums are no larger than
+    /// the fit needs. Inlined where `free` is known, so that the pixel loop is made for it.
+    #[inline(always)]
+    fn solve<const N: usize>(
+        &self,
+        samples: &[(f64, f64, f64)],
+        others: &[InFit],
+        free: Free,
+    ) -> Option<([f64; TERMS], f64)> {
+        let table = logistic_table();
+        let own = InFit::new(&self.member, free);
+        let unknowns = FLOOR_TERMS + own.unknowns(free);
+        if samples.len() <= 2 * unknowns {
+            return None;
+        }
+        let floor = &self.floor;
+        let mut jtj = SMatrix::<f64, N, N>::zeros();
+        let mut jtr = SVector::<f64, N>::zeros();
+        let mut cost = 0.0;
+        for &(x, y, v) in samples {
+            let mut j = SVector::<f64, N>::zeros();
+            j[0] = 1.0;
+            j[1] = x - floor.centre.0;
+            j[2] = y - floor.centre.1;
+            let mut model = floor.at((x, y));
+            model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
+            if let Some([dx, dy, r, _, g]) = own.at(table, (x, y)) {
+                model += own.amplitude * g;
+                let values = own.values(table, (dx, dy, r), free);
+                for (t, value) in values[..N - FLOOR_TERMS].iter().enumerate() {
+                    j[FLOOR_TERMS + t] = *value;
+                }
+            }
+            let residual = v - model;
+            jtj.syger(1.0, &j, &j, 1.0);
+            jtr.axpy(residual, &j, 1.0);
+            cost += residual * residual;
+        }
+        for t in unknowns..N {
+            jtj[(t, t)] = 1.0;
+            jtr[t] = 0.0;
+        }
+        jtj.fill_upper_triangle_with_lower_triangle();
+        let solved = jtj.cholesky()?.solve(&jtr);
+        let mut step = [0.0; TERMS];
+        step[..N].copy_from_slice(solved.as_slice());
+        Some((step, cost))
+    }
+}
