@@ -18,19 +18,19 @@ use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
 use crate::ImageView;
 
-/// Gauss-Newton steps at most; a step that moves no centre by more than
-/// [`CONVERGED_STEP_PX`] ends the fit.
+/// Gauss-Newton steps of a lone fit, or sweeps, at most; a step (a sweep) that moves no
+/// centre by more than [`CONVERGED_STEP_PX`] ends the fit.
 const MAX_ITERATIONS: usize = 12;
 const CONVERGED_STEP_PX: f64 = 5e-3;
 /// A fit explains its pixels when their RMS residual is within this many times what the
 /// camera's lone particles leave (noise and one disc's mismatch, learnt): a neighbour no track
 /// knows has only a guessed shape. A fit measuring a detected particle's centre may leave each
-/// member's mismatch on top (see `Group::measure`). A lone blob explained worse is not one
+/// member's mismatch on top (see `Group::judge`). A lone blob explained worse is not one
 /// particle, and teaches no shape.
 const MAX_RESIDUAL_RATIO: f64 = 4.0;
-/// A fit whose last step still moved a member by more than this fraction of its image's reach
-/// has not settled (it swings between two solutions, or creeps along a valley), and measures
-/// none of its members.
+/// A particle whose last step still moved it by more than this fraction of its image's reach
+/// has not settled (it swings between two solutions, or creeps along a valley), and neither
+/// it nor a particle whose group it belongs to is measured.
 const SETTLED_STEP_IN_REACHES: f64 = 0.05;
 /// Pixels of background around a particle's edge that its fits see, pixels.
 const MARGIN_PX: f64 = 2.0;
