@@ -89,6 +89,14 @@ struct Member {
     shape: Shape,
 }
 
+impl Member {
+    /// Whether a fit has pushed this particle further from its `seed` than the seed's image
+    /// reaches: there is no light of it there, it is gone.
+    fn left_reach_of(&self, seed: &Member) -> bool {
+        (self.at.x - seed.at.x).hypot(self.at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX
+    }
+}
+
 /// The outcome of a fit: the members as fitted, the RMS residual (grey levels), and whether
 /// its steps settled (see [`SETTLED_STEP_IN_REACHES`]).
 struct Fitted {
@@ -176,8 +184,7 @@ fn fit_alone(samples: &[(f64, f64, f64)], seed: Member) -> Option<(Member, f64)>
     for _ in 0..MAX_ITERATIONS {
         let stepped = fit.step(samples, &[], Free::Shape, seed.shape.radius_px)?;
         cost = stepped.cost;
-        let at = fit.member.at;
-        if (at.x - seed.at.x).hypot(at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX {
+        if fit.member.left_reach_of(&seed) {
             return None;
         }
         if stepped.moved_px < CONVERGED_STEP_PX {
@@ -450,8 +457,8 @@ impl CameraShake {
             &near,
             (edge_px, widest_px, MAX_RESIDUAL_RATIO * lone_rms),
         );
-        let measured = group.measure_all();
-        measured
+        group
+            .measure_all()
             .into_iter()
             .zip(wanted)
             .map(|(m, w)| m.unwrap_or_else(|| unmeasured(w)))

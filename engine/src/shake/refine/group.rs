@@ -64,14 +64,14 @@ pub(super) struct Group<'a> {
 
 /// Wanted particle `k`'s fit: its group (`members`, its own first, then the tracked
 /// particles whose images may touch it; `ids` name them across groups), where in the group
-/// the particles without a detection are, and the detections no track knows that may touch it.
+/// the particles without a detection are, and the detections no track knows that may touch it
+/// (by id).
 struct Subject {
     k: usize,
     members: Vec<Member>,
     ids: Vec<usize>,
     hidden: Vec<usize>,
-    unknown: Vec<Member>,
-    unknown_ids: Vec<usize>,
+    unknown: Vec<(usize, Member)>,
 }
 
 impl<'a> Group<'a> {
@@ -149,9 +149,9 @@ impl<'a> Group<'a> {
         s: &'s Subject,
         with_unknown: bool,
     ) -> impl Iterator<Item = (&'s usize, &'s Member)> {
-        let unknown = if with_unknown { s.unknown.len() } else { 0 };
+        let unknown: &[(usize, Member)] = if with_unknown { &s.unknown } else { &[] };
         let tracked = s.ids.iter().zip(&s.members);
-        tracked.chain(s.unknown_ids.iter().zip(&s.unknown).take(unknown))
+        tracked.chain(unknown.iter().map(|(id, m)| (id, m)))
     }
 
     /// What a sweep says of a subject's particle, judged as a fit of its group would be: on
@@ -191,7 +191,7 @@ impl<'a> Group<'a> {
                 (own, false, w.predicted_rect, self.seen.len() + k)
             }
         };
-        let (members, ids, (unknown, unknown_ids), hidden) = self.neighbours(k, (own, id), c);
+        let (members, ids, unknown, hidden) = self.neighbours(k, (own, id), c);
         if clear && hidden.is_empty() {
             return None;
         }
@@ -201,7 +201,6 @@ impl<'a> Group<'a> {
             ids,
             hidden,
             unknown,
-            unknown_ids,
         })
     }
 
@@ -259,19 +258,14 @@ impl<'a> Group<'a> {
         k: usize,
         (own, id): (Member, usize),
         c: RectPoint,
-    ) -> (
-        Vec<Member>,
-        Vec<usize>,
-        (Vec<Member>, Vec<usize>),
-        Vec<usize>,
-    ) {
+    ) -> (Vec<Member>, Vec<usize>, Vec<(usize, Member)>, Vec<usize>) {
         // The fit sees a box of half-width radius + margin around the particle's centre.
         let reach = (own.shape.radius_px + MARGIN_PX) * std::f64::consts::SQRT_2;
         let own_detection = self.wanted[k].detection;
         let touches = |p: RectPoint, other: &Member| {
             (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
         };
-        let (mut tracked, mut ids, mut unknown) = (vec![own], vec![id], (Vec::new(), Vec::new()));
+        let (mut tracked, mut ids, mut unknown) = (vec![own], vec![id], Vec::new());
         for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
             let other = match self.members.claimed[j] {
                 _ if Some(j) == own_detection => continue,
@@ -279,8 +273,7 @@ impl<'a> Group<'a> {
                 None => {
                     let m = guessed(self.image, &self.seen[j], self.edge_px, self.widest_px);
                     if touches(p, &m) {
-                        unknown.0.push(m);
-                        unknown.1.push(j);
+                        unknown.push((j, m));
                     }
                     continue;
                 }

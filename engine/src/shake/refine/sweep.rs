@@ -20,8 +20,8 @@ use crate::ImageView;
 pub(super) struct Sweep {
     index: HashMap<usize, usize>,
     seeds: Vec<Member>,
-    now: Vec<Member>,
-    floors: Vec<Floor>,
+    /// Each particle and the floor under it, as the sweeps have taken them so far.
+    fits: Vec<Fit>,
     /// Each particle's pixels (its seed's box).
     samples: Vec<Vec<(f64, f64, f64)>>,
     /// Per particle, the others whose light reaches its box.
@@ -29,7 +29,7 @@ pub(super) struct Sweep {
     last_move_px: Vec<f64>,
     gone: Vec<bool>,
     failed: Vec<bool>,
-    /// The neighbours' models of the particle a step fits (kept across steps).
+    /// The neighbours' models of the particle a step fits (a buffer kept across steps).
     others: Vec<InFit>,
 }
 
@@ -68,7 +68,6 @@ impl Sweep {
     /// Each particle's pixels and the particles whose light reaches them.
     fn prepare(&mut self, image: ImageView<'_>) {
         let n = self.seeds.len();
-        self.now = self.seeds.clone();
         self.last_move_px = vec![f64::INFINITY; n];
         self.gone = vec![false; n];
         self.failed = vec![false; n];
@@ -77,7 +76,15 @@ impl Sweep {
             .iter()
             .map(|m| window(image, &[(m.at, half_px(m))]))
             .collect();
-        self.floors = self.samples.iter().map(|s| Floor::under(s)).collect();
+        self.fits = self
+            .seeds
+            .iter()
+            .zip(&self.samples)
+            .map(|(&member, s)| Fit {
+                member,
+                floor: Floor::under(s),
+            })
+            .collect();
         // The grid takes points of any plane: these are raw pixels.
         let grid = PointGrid::new(
             self.seeds.iter().enumerate().map(|(i, m)| {
@@ -116,17 +123,9 @@ impl Sweep {
     fn step(&mut self, i: usize) -> f64 {
         let mut others = std::mem::take(&mut self.others);
         others.clear();
-        others.extend(
-            self.touching[i]
-                .iter()
-                .filter(|&&j| !self.gone[j])
-                .map(|&j| InFit::new(&self.now[j], Free::GuessedRadius)),
-        );
+        others.extend(self.models(&self.touching[i]));
         let seed = self.seeds[i];
-        let mut fit = Fit {
-            member: self.now[i],
-            floor: self.floors[i],
-        };
+        let mut fit = self.fits[i];
         let stepped = fit.step(
             &self.samples[i],
             &others,
@@ -138,16 +137,20 @@ impl Sweep {
             self.failed[i] = true;
             return 0.0;
         };
-        let mut m = fit.member;
-        // A particle pushed further than its reach from its seed has no light there: gone.
-        if (m.at.x - seed.at.x).hypot(m.at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX {
+        if fit.member.left_reach_of(&seed) {
             self.gone[i] = true;
-            m.shape.amplitude = 0.0;
+            fit.member.shape.amplitude = 0.0;
         }
-        self.now[i] = m;
-        self.floors[i] = fit.floor;
+        self.fits[i] = fit;
         self.last_move_px[i] = stepped.moved_px;
         stepped.moved_px
+    }
+
+    /// The models of particles `ids` as they stand, but those gone.
+    fn models<'s>(&'s self, ids: &'s [usize]) -> impl Iterator<Item = InFit> + 's {
+        ids.iter()
+            .filter(|&&j| !self.gone[j])
+            .map(|&j| InFit::new(&self.fits[j].member, Free::GuessedRadius))
     }
 
     /// Particle `id`'s index, if it was added.
@@ -157,7 +160,7 @@ impl Sweep {
 
     /// Particle `i` as the sweeps left it (no light where it is gone).
     pub(super) fn member(&self, i: usize) -> Member {
-        self.now[i]
+        self.fits[i].member
     }
 
     /// Whether particle `i` has a fit (none where a step of it failed).
@@ -176,11 +179,10 @@ impl Sweep {
     /// whose light reaches them.
     pub(super) fn rms_on(&self, i: usize) -> f64 {
         let table = logistic_table();
-        let floor = self.floors[i];
-        let lit: Vec<InFit> = std::iter::once(&i)
-            .chain(&self.touching[i])
-            .filter(|&&j| !self.gone[j])
-            .map(|&j| InFit::new(&self.now[j], Free::GuessedRadius))
+        let floor = self.fits[i].floor;
+        let lit: Vec<InFit> = self
+            .models(std::slice::from_ref(&i))
+            .chain(self.models(&self.touching[i]))
             .collect();
         let samples = &self.samples[i];
         let sum: f64 = samples
