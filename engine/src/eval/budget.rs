@@ -1,11 +1,15 @@
 //! The loss budget of a run: where each measurable truth particle-frame was lost, stage by stage,
 //! and how many of those losses had a touching neighbour or a streak.
 //!
-//! A truth particle-frame is followed through the pipeline in its order: the detection it
-//! became in each image (each detection claimed by at most one truth particle, nearest first),
-//! whether that detection continued a per-camera track, the stereo pair it entered, the 3D track
-//! that pair belongs to over the +-M window, and whether a vector describes it. Its fate is the
-//! first stage it failed.
+//! A truth particle-frame is followed to the point the pipeline made of it: a 3D point (or a
+//! partial sample, where a track went on with one image hiding its particle) whose two images
+//! lie near the particle's, each point claimed by at most one truth particle, nearest first.
+//! Where it has one, its fate is decided by the 3D track that point belongs to over the +-M
+//! window and whether a vector describes it. Where it has none, the per-frame chain's stages
+//! tell where it was lost: the detection it became in each image (each detection claimed by at
+//! most one truth particle, nearest first), whether that detection continued a per-camera
+//! track, and the stereo pair it entered. A particle its track found and fitted without a
+//! detection of its own is found, not lost.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
@@ -32,6 +36,8 @@ pub struct Observation {
     pub continued: [Vec<bool>; 2],
     /// The stereo-matched particles.
     pub points: Vec<MatchedPoint>,
+    /// Particles one image hid whose tracks went on with a partial sample.
+    pub partial: Vec<MatchedPoint>,
 }
 
 impl Observation {
@@ -54,6 +60,7 @@ impl Observation {
                 output.continued_right.clone(),
             ],
             points: output.points.clone(),
+            partial: output.partial_points.clone(),
         }
     }
 }
@@ -66,15 +73,17 @@ pub enum Fate {
     UndetectedLeft,
     /// No detection of its own in the right image.
     UndetectedRight,
-    /// Detected, but the left detection does not continue a track.
+    /// No point of its own, and detected, but the left detection does not continue a track.
     UnlinkedLeft,
     /// Detected, but the right detection does not continue a track.
     UnlinkedRight,
-    /// Linked in both, but its left detection entered no stereo pair.
+    /// Linked in both, but no point near its images, and its left detection entered no stereo
+    /// pair.
     Unmatched,
-    /// Its left detection was paired with another particle's right detection (or a clutter's).
+    /// No point near its images: its left detection was paired with another particle's right
+    /// detection (or a clutter's).
     WrongPartner,
-    /// Matched right, but not by one 3D track through the whole +-M window.
+    /// A point near its images, but not of one 3D track through the whole +-M window.
     TrackBroken,
     /// Its 3D track spans the window, but no vector describes it (rejected or not fitted).
     NoVelocity,
@@ -137,7 +146,8 @@ pub struct LossBudget {
     /// The median equivalent diameter of the run's detections, pixels: the scale of "touching"
     /// and "streaked".
     pub particle_diameter_px: f64,
-    /// A truth particle claims a detection whose centroid lies within this of its image, pixels.
+    /// A truth particle claims a detection whose centroid lies within this of its image, and a
+    /// point whose two images do, pixels.
     pub detection_radius_px: f64,
     /// Every fate, in pipeline order.
     pub losses: Vec<Loss>,
@@ -150,6 +160,8 @@ struct Followed {
     px: Option<[PixelPoint; 2]>,
     /// The detections it claimed, per image.
     detection: [Option<usize>; 2],
+    /// The 3D track of the point (or partial sample) it claimed.
+    track: Option<u64>,
     touching: bool,
 }
 
@@ -181,7 +193,6 @@ pub fn loss_budget(
     let measurable = Measurable::new(truth, options.window_frames);
     let fates = Fates {
         followed: &followed,
-        observed: &observed,
         measured: &measured,
         m: options.window_frames,
     };
@@ -261,8 +272,30 @@ fn follow_frame(
         .collect();
     let mut claimed = [vec![None; rows.len()], vec![None; rows.len()]];
     for (camera, claims) in claimed.iter_mut().enumerate() {
-        claim_detections(&images, camera, &o.detections[camera], radius, claims);
+        let detections: Vec<[PixelPoint; 2]> =
+            o.detections[camera].iter().map(|d| [d.0; 2]).collect();
+        claim_nearest(
+            &images,
+            &detections,
+            |a, b| {
+                let d = distance(a[camera], b[camera]);
+                (d <= radius).then_some(d)
+            },
+            claims,
+        );
     }
+    let points: Vec<&MatchedPoint> = o.points.iter().chain(&o.partial).collect();
+    let images_of: Vec<[PixelPoint; 2]> = points.iter().map(|p| [p.left_px, p.right_px]).collect();
+    let mut point = vec![None; rows.len()];
+    claim_nearest(
+        &images,
+        &images_of,
+        |a, b| {
+            let (l, r) = (distance(a[0], b[0]), distance(a[1], b[1]));
+            (l <= radius && r <= radius).then_some(l + r)
+        },
+        &mut point,
+    );
     for (i, t) in rows.iter().enumerate() {
         let touching = images[i].is_some_and(|a| {
             images.iter().enumerate().any(|(j, b)| {
@@ -274,33 +307,32 @@ fn follow_frame(
             Followed {
                 px: images[i],
                 detection: [claimed[0][i], claimed[1][i]],
+                track: point[i].map(|p| points[p].track_id),
                 touching,
             },
         );
     }
 }
 
-/// In one image, each visible truth particle paired with at most one detection and vice versa,
-/// nearest first, within `radius`.
-fn claim_detections(
+/// Each visible truth particle (its `images`) paired with at most one of `found` (images of
+/// detections or points) and vice versa, nearest first by `near` (`None`: too far).
+fn claim_nearest(
     images: &[Option<[PixelPoint; 2]>],
-    camera: usize,
-    detections: &[(PixelPoint, f64)],
-    radius: f64,
+    found: &[[PixelPoint; 2]],
+    near: impl Fn([PixelPoint; 2], [PixelPoint; 2]) -> Option<f64>,
     claims: &mut [Option<usize>],
 ) {
     let mut pairs = Vec::new();
     for (ti, px) in images.iter().enumerate() {
         let Some(px) = px else { continue };
-        for (di, &(d, _)) in detections.iter().enumerate() {
-            let dist = distance(px[camera], d);
-            if dist <= radius {
+        for (di, &d) in found.iter().enumerate() {
+            if let Some(dist) = near(*px, d) {
                 pairs.push((dist, ti, di));
             }
         }
     }
     pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-    let mut taken = vec![false; detections.len()];
+    let mut taken = vec![false; found.len()];
     for (_, ti, di) in pairs {
         if claims[ti].is_none() && !taken[di] {
             claims[ti] = Some(di);
@@ -329,7 +361,6 @@ fn streaked(t: &TruthRow, followed: &BTreeMap<(u64, u64), Followed>, diameter: f
 /// Decides the fate of measurable particle-frames.
 struct Fates<'a> {
     followed: &'a BTreeMap<(u64, u64), Followed>,
-    observed: &'a BTreeMap<u64, &'a Observation>,
     measured: &'a BTreeSet<(u64, u64)>,
     m: u64,
 }
@@ -337,31 +368,23 @@ struct Fates<'a> {
 impl Fates<'_> {
     /// The fate of measurable `t`, followed as `f` in a frame the pipeline saw as `obs`.
     fn of(&self, t: &TruthRow, f: &Followed, obs: &Observation) -> Fate {
-        let [Some(dl), Some(dr)] = f.detection else {
-            return if f.detection[0].is_none() {
-                Fate::UndetectedLeft
-            } else {
-                Fate::UndetectedRight
-            };
-        };
-        if !obs.continued[0].get(dl).copied().unwrap_or(false) {
-            return Fate::UnlinkedLeft;
+        // Detected in both images but not continuing a track there: the particle-frame starts
+        // a track (or is left out), whatever point it became.
+        if let [Some(dl), Some(dr)] = f.detection {
+            if !obs.continued[0].get(dl).copied().unwrap_or(false) {
+                return Fate::UnlinkedLeft;
+            }
+            if !obs.continued[1].get(dr).copied().unwrap_or(false) {
+                return Fate::UnlinkedRight;
+            }
         }
-        if !obs.continued[1].get(dr).copied().unwrap_or(false) {
-            return Fate::UnlinkedRight;
-        }
-        let Some(point) = self.point_of(t.frame, t.pid) else {
-            return if self.left_point(obs, dl).is_some() {
-                Fate::WrongPartner
-            } else {
-                Fate::Unmatched
-            };
+        let Some(track) = f.track else {
+            return Self::lost(f, obs);
         };
         let window = t.frame.saturating_sub(self.m)..=t.frame + self.m;
-        let whole = window.into_iter().all(|g| {
-            self.point_of(g, t.pid)
-                .is_some_and(|p| p.track_id == point.track_id)
-        });
+        let whole = window
+            .into_iter()
+            .all(|g| self.followed.get(&(g, t.pid)).and_then(|f| f.track) == Some(track));
         if !whole {
             Fate::TrackBroken
         } else if self.measured.contains(&(t.frame, t.pid)) {
@@ -371,23 +394,22 @@ impl Fates<'_> {
         }
     }
 
-    /// The stereo pair made of this particle's own left and right detections in `frame`.
-    fn point_of(&self, frame: u64, pid: u64) -> Option<&MatchedPoint> {
-        let obs = self.observed.get(&frame)?;
-        let f = self.followed.get(&(frame, pid))?;
-        let [Some(dl), Some(dr)] = f.detection else {
-            return None;
+    /// Where a particle-frame that became no point was lost: not detected in an image, or its
+    /// left detection paired with no right one, or with another's.
+    fn lost(f: &Followed, obs: &Observation) -> Fate {
+        let [Some(dl), Some(_)] = f.detection else {
+            return if f.detection[0].is_none() {
+                Fate::UndetectedLeft
+            } else {
+                Fate::UndetectedRight
+            };
         };
-        let (l, r) = (obs.detections[0][dl].0, obs.detections[1][dr].0);
-        obs.points
-            .iter()
-            .find(|p| p.left_px == l && p.right_px == r)
-    }
-
-    /// The stereo pair its left detection entered, whatever its partner.
-    fn left_point<'o>(&self, obs: &'o Observation, dl: usize) -> Option<&'o MatchedPoint> {
         let l = obs.detections[0][dl].0;
-        obs.points.iter().find(|p| p.left_px == l)
+        if obs.points.iter().any(|p| p.left_px == l) {
+            Fate::WrongPartner
+        } else {
+            Fate::Unmatched
+        }
     }
 }
 
@@ -401,7 +423,7 @@ impl fmt::Display for LossBudget {
             f,
             "loss budget: {} measurable particle-frames (both images show them for the {} frames \
              around), each at the first stage it failed; particle images {:.1} px, a detection \
-             claimed within {:.1} px",
+             or point claimed within {:.1} px of the particle's images",
             self.measurable,
             2 * self.window_frames + 1,
             self.particle_diameter_px,
@@ -463,6 +485,7 @@ mod tests {
                     right_px: r,
                     depth_m: 1.0,
                 }],
+                partial: Vec::new(),
             })
             .collect();
         edit(&mut observations);
@@ -495,7 +518,10 @@ mod tests {
     fn each_particle_frame_goes_to_the_first_stage_it_failed() {
         assert_eq!(only_fate(&budget_of(|_| {}, true)), Fate::Measured);
         assert_eq!(only_fate(&budget_of(|_| {}, false)), Fate::NoVelocity);
-        let moved = |o: &mut Vec<Observation>| o[5].detections[1][0].0.x += 10.0;
+        let moved = |o: &mut Vec<Observation>| {
+            o[5].detections[1][0].0.x += 10.0;
+            o[5].points[0].right_px.x += 10.0;
+        };
         assert_eq!(only_fate(&budget_of(moved, true)), Fate::UndetectedRight);
         let unlinked = |o: &mut Vec<Observation>| o[5].continued[0][0] = false;
         assert_eq!(only_fate(&budget_of(unlinked, true)), Fate::UnlinkedLeft);
@@ -505,6 +531,27 @@ mod tests {
         assert_eq!(only_fate(&budget_of(wrong, true)), Fate::WrongPartner);
         let broken = |o: &mut Vec<Observation>| o[8].points[0].track_id = 2;
         assert_eq!(only_fate(&budget_of(broken, true)), Fate::TrackBroken);
+    }
+
+    #[test]
+    fn a_particle_its_track_found_without_a_detection_or_partly_is_not_lost() {
+        // Fitted in the right image where no detection of its own was: its point is there.
+        let fitted = |o: &mut Vec<Observation>| o[5].detections[1].clear();
+        assert_eq!(only_fate(&budget_of(fitted, true)), Fate::Measured);
+        // Hidden in one image in a frame of the window: the track went on with a partial
+        // sample, and is not broken.
+        let partial = |o: &mut Vec<Observation>| {
+            let p = o[8].points.remove(0);
+            o[8].partial.push(p);
+        };
+        assert_eq!(only_fate(&budget_of(partial, true)), Fate::Measured);
+        // A point of another track near the particle's images in one frame breaks it.
+        let other = |o: &mut Vec<Observation>| {
+            let mut p = o[8].points.remove(0);
+            p.track_id = 2;
+            o[8].partial.push(p);
+        };
+        assert_eq!(only_fate(&budget_of(other, true)), Fate::TrackBroken);
     }
 
     #[test]
@@ -530,6 +577,7 @@ mod tests {
                 detections: [Vec::new(), Vec::new()],
                 continued: [Vec::new(), Vec::new()],
                 points: Vec::new(),
+                partial: Vec::new(),
             })
             .collect();
         let options = EvalOptions {

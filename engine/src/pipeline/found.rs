@@ -69,7 +69,8 @@ impl Pipeline {
             .collect();
         out.stats.predicted = predictions.len();
         out.stats.found = found.len();
-        self.tracks.take_found(found, &mut out.points);
+        self.tracks
+            .take_found(found, (&mut out.points, &mut out.partial_points));
         out.continued_left = left.continued(out.detections_left.len(), &shaken.claimed_left);
         out.continued_right = right.continued(out.detections_right.len(), &shaken.claimed_right);
         out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();

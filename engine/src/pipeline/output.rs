@@ -138,6 +138,11 @@ pub struct FrameOutput {
     pub continued_right: Vec<bool>,
     /// Its particles matched in both cameras.
     pub points: Vec<MatchedPoint>,
+    /// Particles one image showed and the other hid, whose 3D tracks went on with a partial
+    /// sample (`link.track_first`): on the seen image's line of sight at the predicted depth;
+    /// the hidden image's pixel is where the sample projects. Not stereo matches: not in
+    /// `points`, and not counted in `stats.matches`.
+    pub partial_points: Vec<MatchedPoint>,
     /// Vectors for this frame, without latency (see above).
     pub causal_vectors: Vec<VelocityVector>,
     /// The frame `vectors` describe; `None` until `M` frames have followed the first one.

@@ -277,12 +277,13 @@ impl Tracks {
 
     /// Continues the tracks (by key) whose particles their predictions found this frame, each
     /// with its sample, the distance it was found from the prediction and its point (appended
-    /// to `points`). They leave the per-camera chain's keys for their own, so no stereo pair
-    /// of this frame continues them a second time.
+    /// to `points`, or to `partial_points` where one image hid the particle). They leave the
+    /// per-camera chain's keys for their own, so no stereo pair of this frame continues them a
+    /// second time.
     pub(crate) fn take_found(
         &mut self,
         found: Vec<(u64, Sample, f64, MatchedPoint)>,
-        points: &mut Vec<MatchedPoint>,
+        (points, partial_points): (&mut Vec<MatchedPoint>, &mut Vec<MatchedPoint>),
     ) {
         for (key, sample, miss_px, point) in found {
             let Some(mut track) = self.live.remove(&key) else {
@@ -290,12 +291,15 @@ impl Tracks {
             };
             track.predictor.score(&sample, miss_px);
             // A particle hidden in one image was not matched: it is no stereo point.
-            if sample.separation != Separation::Hidden {
-                points.push(MatchedPoint {
-                    track_id: track.id,
-                    ..point
-                });
-            }
+            let to = if sample.separation == Separation::Hidden {
+                &mut *partial_points
+            } else {
+                &mut *points
+            };
+            to.push(MatchedPoint {
+                track_id: track.id,
+                ..point
+            });
             push_sample(&mut track, sample, self.limits.history_frames);
             self.live.insert(FOUND_KEYS | track.id, track);
         }
