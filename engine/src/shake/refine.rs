@@ -274,13 +274,11 @@ impl InFit {
         }
     }
 
-    /// The Jacobian values at a pixel `(dx, dy)` from the centre, at distance `r` within the
-    /// reach: x, y, amplitude (the disc's height per unit amplitude), then radius and edge
-    /// where free.
+    /// The Jacobian values at a pixel where [`InFit::at`] found it (`dx`, `dy`, `r`, `z`
+    /// and the disc's height `g`): x, y, amplitude (the disc's height per unit amplitude),
+    /// then radius and edge where free.
     #[inline]
-    fn values(&self, table: &[f64], (dx, dy, r): (f64, f64, f64), free: Free) -> [f64; 5] {
-        let z = (r - self.radius_px) * self.per_edge;
-        let g = logistic_in(table, z);
+    fn values(&self, [dx, dy, r, z, g]: [f64; 5], free: Free) -> [f64; 5] {
         let a = self.amplitude;
         let dg_dz = -g * (1.0 - g);
         let dg_dr = dg_dz * self.per_edge;

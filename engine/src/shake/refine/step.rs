@@ -98,9 +98,9 @@ impl Fit {
             j[2] = y - floor.centre.1;
             let mut model = floor.at((x, y));
             model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            if let Some([dx, dy, r, _, g]) = own.at(table, (x, y)) {
-                model += own.amplitude * g;
-                let values = own.values(table, (dx, dy, r), free);
+            if let Some(at) = own.at(table, (x, y)) {
+                model += own.amplitude * at[4];
+                let values = own.values(at, free);
                 for (t, value) in values[..N - FLOOR_TERMS].iter().enumerate() {
                     j[FLOOR_TERMS + t] = *value;
                 }
