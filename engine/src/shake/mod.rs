@@ -9,7 +9,10 @@
 //! images still overlap with the shapes their tracks learnt.
 //!
 //! A track found in one image only claims that detection (it is explained, and must not pair
-//! with another particle's) and coasts; a track found in neither coasts. A track carried by its
+//! with another particle's), and [`refine`] looks for its particle in the other image itself.
+//! A track found in neither coasts: a particle neither detector saw near its projections is not
+//! looked for by fits alone, as fits free to take light wherever it lies keep a ghost (a wrong
+//! pair, a room's texture) going on light no particle made. A track carried by its
 //! neighbours' flow (too young for a motion of its own) is looked for the same way: left to
 //! the per-frame chain, a young track broke wherever a neighbour hid its particle in one image.
 
@@ -42,8 +45,8 @@ pub(crate) struct Shaken {
     pub(crate) claimed_left: Vec<bool>,
     /// Per right feature, whether a prediction claimed it.
     pub(crate) claimed_right: Vec<bool>,
-    /// Every prediction not found in both images, with the feature it claimed in each
-    /// (left, right), if any: [`refine`] looks for it in the images themselves.
+    /// Every prediction found in one image only, with the feature it claimed in each (left,
+    /// right): [`refine`] looks for it in the other image itself.
     pub(crate) partial: Vec<(usize, [Option<usize>; 2])>,
 }
 
@@ -106,6 +109,7 @@ pub(crate) fn find(
     shaken.partial = (0..predictions.len())
         .filter(|&i| !done[i])
         .map(|i| (i, [left_single[i], right_single[i]]))
+        .filter(|(_, features)| features.iter().any(Option::is_some))
         .collect();
     shaken.found.sort_by_key(|f| f.prediction);
     shaken
@@ -229,6 +233,23 @@ mod tests {
         assert!(s.found.is_empty());
         assert_eq!(s.claimed_left, [false, false]);
         assert_eq!(s.claimed_right, [true]);
+    }
+
+    #[test]
+    fn a_track_no_detector_saw_is_not_looked_for() {
+        // One prediction near a right feature only, one near nothing at all.
+        let predictions = [
+            prediction(1, 10.0, 0.0, 5.0),
+            prediction(2, 40.0, 30.0, 5.0),
+        ];
+        let s = find(
+            &predictions,
+            &[feature(20.0, 5.0)],
+            &[feature(0.5, 5.0)],
+            2.0,
+        );
+        assert!(s.found.is_empty());
+        assert_eq!(s.partial, [(0, [None, Some(0)])], "the second coasts");
     }
 
     #[test]
