@@ -421,7 +421,7 @@ impl CameraShake {
     /// One camera's predicted particles measured. Each one standing alone (clear, and no
     /// other detection within reach) teaches its track's shape (where the track has none, or
     /// `relearn` says so). Each one whose track knows its shape is fitted among its
-    /// neighbours where its image may overlap another (its detection was not clear, or a
+    /// neighbours where its image may touch another (its detection does not stand alone, or a
     /// hidden particle is near) or where it has no detection of its own: every neighbour
     /// seeded where its track puts it (a clear detection at its centroid, another at its
     /// prediction; a detection no track knows at its centroid, as a disc of its size), shapes
@@ -934,6 +934,47 @@ mod tests {
             };
             assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
         }
+    }
+
+    #[test]
+    fn touching_particles_parted_at_a_dip_are_measured_apart_from_each_others_light() {
+        // Two particles 5 px apart, each detected clear (the detector parted them at the dip
+        // between their peaks), their centroids pulled towards each other by the light of the
+        // other in their regions; a third stands alone, its detection left as it is.
+        let truth = [disc(14.3, 15.6), disc(19.3, 15.9), disc(30.0, 8.0)];
+        let pixels = draw(38, 30, &truth);
+        let image = ImageView::new(38, 30, &pixels).expect("sized");
+        let centroids = [at(14.6, 15.6), at(19.0, 15.9), at(30.0, 8.0)];
+        let seen: Vec<Seen> = centroids
+            .iter()
+            .map(|&c| Seen {
+                centroid: c,
+                diameter_px: 4.0,
+                clear: true,
+                rect: RectPoint { x: c.x, y: c.y },
+            })
+            .collect();
+        let wanted: Vec<Wanted> = centroids
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| Wanted {
+                detection: Some(i),
+                predicted_px: Some(p),
+                predicted_rect: RectPoint { x: p.x, y: p.y },
+                disparity_px: 10.0,
+                relearn: false,
+            })
+            .collect();
+        let mut shapes = truth.map(|t| Some(t.shape));
+        let measured =
+            learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None, None]);
+        for (m, t) in measured.iter().zip(&truth).take(2) {
+            let Measured::Refitted(c) = m else {
+                panic!("{measured:?}");
+            };
+            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
+        }
+        assert_eq!(measured[2], Measured::AsDetected, "{measured:?}");
     }
 
     #[test]

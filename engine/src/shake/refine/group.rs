@@ -8,11 +8,10 @@ use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
 
-/// One camera's particles as fit members: per detection, the track's member that claimed it
-/// (with whether the detection is clear); per wanted particle without a detection, its member
-/// at its prediction.
+/// One camera's particles as fit members: per detection, the track's member that claimed it;
+/// per wanted particle without a detection, its member at its prediction.
 pub(super) struct Members {
-    claimed: Vec<Option<(Member, bool)>>,
+    claimed: Vec<Option<Member>>,
     hidden: Vec<Option<Member>>,
 }
 
@@ -40,7 +39,7 @@ pub(super) fn members_of(
                     Some(p) if !clear => p,
                     _ => seen[i].centroid,
                 };
-                members.claimed[i] = Some((Member { at, shape }, clear));
+                members.claimed[i] = Some(Member { at, shape });
             }
             None => members.hidden[k] = w.predicted_px.map(|at| Member { at, shape }),
         }
@@ -174,14 +173,16 @@ impl<'a> Group<'a> {
         self.judge(s, &seeds, fitted)
     }
 
-    /// Wanted particle `k`'s fit, `None` where it is not fitted (no shape known, or a clear
-    /// detection with no hidden particle near).
+    /// Wanted particle `k`'s fit, `None` where it is not fitted (no shape known, or a
+    /// detection standing alone with no hidden particle near). A clear detection that touches
+    /// another (parted from it at a dip between their peaks) is fitted: the neighbour's light
+    /// in its region pulls its centroid.
     fn subject(&self, k: usize) -> Option<Subject> {
         let w = &self.wanted[k];
-        let (own, clear, c, id) = match w.detection {
+        let (own, alone, c, id) = match w.detection {
             Some(i) => {
-                let (own, clear) = self.members.claimed[i]?;
-                (own, clear, self.seen[i].rect, i)
+                let own = self.members.claimed[i]?;
+                (own, self.near.alone(self.seen, i), self.seen[i].rect, i)
             }
             None => {
                 let own = self.members.hidden[k]?;
@@ -192,7 +193,7 @@ impl<'a> Group<'a> {
             }
         };
         let (members, ids, unknown, hidden) = self.neighbours(k, (own, id), c);
-        if clear && hidden.is_empty() {
+        if alone && hidden.is_empty() {
             return None;
         }
         Some(Subject {
@@ -269,7 +270,7 @@ impl<'a> Group<'a> {
         for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
             let other = match self.members.claimed[j] {
                 _ if Some(j) == own_detection => continue,
-                Some((m, _)) => m,
+                Some(m) => m,
                 None => {
                     let m = guessed(self.image, &self.seen[j], self.edge_px, self.widest_px);
                     if touches(p, &m) {
