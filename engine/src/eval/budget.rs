@@ -244,7 +244,8 @@ fn median_diameter(observations: &[Observation]) -> f64 {
 }
 
 /// Projects one frame's truth into both images, marks touching images and gives each visible
-/// particle the detections it claims (one-to-one, nearest pairs first, within `radius`).
+/// particle the detections and the point (or partial sample) it claims (one-to-one, nearest
+/// pairs first, within `radius`).
 fn follow_frame(
     o: &Observation,
     rows: &[TruthRow],
@@ -253,9 +254,31 @@ fn follow_frame(
     diameter: f64,
     followed: &mut BTreeMap<(u64, u64), Followed>,
 ) {
+    let images = project(o, rows, rig);
+    let detection = claim_detections(o, &images, radius);
+    let track = claim_points(o, &images, radius);
+    for (i, t) in rows.iter().enumerate() {
+        let touching = images[i].is_some_and(|a| {
+            images.iter().enumerate().any(|(j, b)| {
+                j != i && b.is_some_and(|b| (0..2).any(|c| distance(a[c], b[c]) < diameter))
+            })
+        });
+        followed.insert(
+            (t.frame, t.pid),
+            Followed {
+                px: images[i],
+                detection: [detection[0][i], detection[1][i]],
+                track: track[i],
+                touching,
+            },
+        );
+    }
+}
+
+/// Each truth particle's images in the frame seen as `o`, where both cameras show it.
+fn project(o: &Observation, rows: &[TruthRow], rig: &StereoRig) -> Vec<Option<[PixelPoint; 2]>> {
     let rig_from_world = o.world_from_rig.map(|p| p.inverse());
-    let images: Vec<Option<[PixelPoint; 2]>> = rows
-        .iter()
+    rows.iter()
         .map(|t| {
             let p = rig_from_world.map_or(t.position, |r| r * t.position);
             let (l, r) = rig.project(&p);
@@ -269,49 +292,47 @@ fn follow_frame(
                 _ => None,
             }
         })
-        .collect();
-    let mut claimed = [vec![None; rows.len()], vec![None; rows.len()]];
+        .collect()
+}
+
+/// Per camera, the detection each particle (its `images`) claims within `radius`.
+fn claim_detections(
+    o: &Observation,
+    images: &[Option<[PixelPoint; 2]>],
+    radius: f64,
+) -> [Vec<Option<usize>>; 2] {
+    let mut claimed = [vec![None; images.len()], vec![None; images.len()]];
     for (camera, claims) in claimed.iter_mut().enumerate() {
         let detections: Vec<[PixelPoint; 2]> =
             o.detections[camera].iter().map(|d| [d.0; 2]).collect();
-        claim_nearest(
-            &images,
-            &detections,
-            |a, b| {
-                let d = distance(a[camera], b[camera]);
-                (d <= radius).then_some(d)
-            },
-            claims,
-        );
+        let near = |a: [PixelPoint; 2], b: [PixelPoint; 2]| {
+            let d = distance(a[camera], b[camera]);
+            (d <= radius).then_some(d)
+        };
+        claim_nearest(images, &detections, near, claims);
     }
+    claimed
+}
+
+/// The track of the point or partial sample each particle (its `images`) claims: the one
+/// whose two images both lie within `radius` of its own, nearest first.
+fn claim_points(
+    o: &Observation,
+    images: &[Option<[PixelPoint; 2]>],
+    radius: f64,
+) -> Vec<Option<u64>> {
     let points: Vec<&MatchedPoint> = o.points.iter().chain(&o.partial).collect();
     let images_of: Vec<[PixelPoint; 2]> = points.iter().map(|p| [p.left_px, p.right_px]).collect();
-    let mut point = vec![None; rows.len()];
-    claim_nearest(
-        &images,
-        &images_of,
-        |a, b| {
-            let (l, r) = (distance(a[0], b[0]), distance(a[1], b[1]));
-            (l <= radius && r <= radius).then_some(l + r)
-        },
-        &mut point,
-    );
-    for (i, t) in rows.iter().enumerate() {
-        let touching = images[i].is_some_and(|a| {
-            images.iter().enumerate().any(|(j, b)| {
-                j != i && b.is_some_and(|b| (0..2).any(|c| distance(a[c], b[c]) < diameter))
-            })
-        });
-        followed.insert(
-            (t.frame, t.pid),
-            Followed {
-                px: images[i],
-                detection: [claimed[0][i], claimed[1][i]],
-                track: point[i].map(|p| points[p].track_id),
-                touching,
-            },
-        );
-    }
+    let near = |a: [PixelPoint; 2], b: [PixelPoint; 2]| {
+        let (l, r) = (distance(a[0], b[0]), distance(a[1], b[1]));
+        (l <= radius && r <= radius).then_some(l + r)
+    };
+    let mut claimed = vec![None; images.len()];
+    claim_nearest(images, &images_of, near, &mut claimed);
+    claimed
+        .into_iter()
+        .map(|p| p.map(|p: usize| points[p].track_id))
+        .collect()
 }
 
 /// Each visible truth particle (its `images`) paired with at most one of `found` (images of
