@@ -2,10 +2,10 @@
 //! A prediction found by detections in both images is measured at them (refitted where its
 //! image overlaps a neighbour's); one found in one image is looked for in the other image
 //! itself, fitted where its track puts it among its neighbours, and continues its track where
-//! both images show it on rows within the epipolar band (one found in neither coasts). A particle one image shows and
-//! the other hides continues its track with a partial sample on the first image's line of sight
-//! at its predicted depth, for at most M frames in a row: measured across that line of sight,
-//! only predicted along it.
+//! both images show it on rows within the epipolar band (one found in neither coasts). A
+//! particle one image shows and the other hides continues its track with a partial sample on
+//! the first image's line of sight at its predicted depth, for at most M frames in a row:
+//! measured across that line of sight, only predicted along it.
 
 use super::{CameraOutput, FrameOutput, Pipeline, Spot, RELEARN_SHAPE_SAMPLES};
 use crate::detect::{Detection, Separation};

@@ -760,6 +760,34 @@ mod tests {
         PixelPoint { x, y }
     }
 
+    /// Detections at `centroids`, all of one size and clearness.
+    fn seen_at(centroids: &[PixelPoint], diameter_px: f64, clear: bool) -> Vec<Seen> {
+        centroids
+            .iter()
+            .map(|&c| Seen {
+                centroid: c,
+                diameter_px,
+                clear,
+                rect: RectPoint { x: c.x, y: c.y },
+            })
+            .collect()
+    }
+
+    /// Particles predicted at `predicted`, each claiming the detection of its own index.
+    fn wanted_at(predicted: &[PixelPoint]) -> Vec<Wanted> {
+        predicted
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| Wanted {
+                detection: Some(i),
+                predicted_px: Some(p),
+                predicted_rect: RectPoint { x: p.x, y: p.y },
+                disparity_px: 10.0,
+                relearn: false,
+            })
+            .collect()
+    }
+
     /// A camera that has learnt its lone particles' residual and edge.
     fn learnt_camera() -> CameraShake {
         CameraShake {
@@ -905,26 +933,12 @@ mod tests {
         let truth = [disc(14.3, 15.6), disc(18.4, 16.1), disc(22.6, 15.2)];
         let pixels = draw(38, 30, &truth);
         let image = ImageView::new(38, 30, &pixels).expect("sized");
-        let seen: Vec<Seen> = [at(14.0, 15.8), at(18.5, 16.0), at(22.9, 15.4)]
-            .iter()
-            .map(|&c| Seen {
-                centroid: c,
-                diameter_px: 5.0,
-                clear: false,
-                rect: RectPoint { x: c.x, y: c.y },
-            })
-            .collect();
-        let wanted: Vec<Wanted> = [at(14.8, 15.1), at(17.9, 16.6), at(23.2, 14.7)]
-            .iter()
-            .enumerate()
-            .map(|(i, &p)| Wanted {
-                detection: Some(i),
-                predicted_px: Some(p),
-                predicted_rect: RectPoint { x: p.x, y: p.y },
-                disparity_px: 10.0,
-                relearn: false,
-            })
-            .collect();
+        let seen = seen_at(
+            &[at(14.0, 15.8), at(18.5, 16.0), at(22.9, 15.4)],
+            5.0,
+            false,
+        );
+        let wanted = wanted_at(&[at(14.8, 15.1), at(17.9, 16.6), at(23.2, 14.7)]);
         let mut shapes = truth.map(|t| Some(t.shape));
         let measured =
             learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None, None]);
@@ -945,26 +959,8 @@ mod tests {
         let pixels = draw(38, 30, &truth);
         let image = ImageView::new(38, 30, &pixels).expect("sized");
         let centroids = [at(14.6, 15.6), at(19.0, 15.9), at(30.0, 8.0)];
-        let seen: Vec<Seen> = centroids
-            .iter()
-            .map(|&c| Seen {
-                centroid: c,
-                diameter_px: 4.0,
-                clear: true,
-                rect: RectPoint { x: c.x, y: c.y },
-            })
-            .collect();
-        let wanted: Vec<Wanted> = centroids
-            .iter()
-            .enumerate()
-            .map(|(i, &p)| Wanted {
-                detection: Some(i),
-                predicted_px: Some(p),
-                predicted_rect: RectPoint { x: p.x, y: p.y },
-                disparity_px: 10.0,
-                relearn: false,
-            })
-            .collect();
+        let seen = seen_at(&centroids, 4.0, true);
+        let wanted = wanted_at(&centroids);
         let mut shapes = truth.map(|t| Some(t.shape));
         let measured =
             learnt_camera().measure(image, &seen, &wanted, &mut shapes, &[None, None, None]);
