@@ -2,11 +2,13 @@
 //! particle's image shape in each camera from the frames where the particle stands alone: a
 //! soft-edged disc, `a / (1 + exp((r - radius) / edge))`, which is a blurred spot for a small
 //! radius and a sharp disc for a large one. Where the particle overlaps a neighbour, it is
-//! fitted with its shape held at what its track learnt and only its centre and amplitude free,
-//! on a sloped background, against its pixels with its neighbours' modelled images taken out
-//! (which are fitted the same way, in turn, until none moves). A free fit of two overlapping
-//! images trades width against position (the reason a cut's centroids are not measured); with
-//! the widths known, the centres are pinned.
+//! fitted with its edge held at what its track learnt, its centre and amplitude free and its
+//! radius free within [`RADIUS_RANGE`] of what its track learnt (the image grows and shrinks as
+//! the particle's depth changes, and a track learns its shape only where the particle stands
+//! alone), on a sloped background, against its pixels with its neighbours' modelled images
+//! taken out (which are fitted the same way, in turn, until none moves). A free fit of two
+//! overlapping images trades width against position (the reason a cut's centroids are not
+//! measured); with the widths held near what the tracks learnt, the centres are pinned.
 
 mod group;
 mod step;
@@ -213,27 +215,27 @@ fn stayed(fitted: &Fitted, seeds: &[Member], may_vanish: impl Fn(usize) -> bool)
 enum Free {
     /// Every member's radius and edge: a lone particle's shape is learnt.
     Shape,
-    /// The radius of members whose shape is only guessed (within [`GUESSED_RADIUS_RANGE`] of
-    /// the guess): the rest of a group is measured with what its tracks learnt.
-    GuessedRadius,
+    /// Every member's radius, within [`RADIUS_RANGE`] of its seed's: a particle among
+    /// neighbours is measured with the edge its track learnt.
+    Radius,
 }
 
-/// How far a fit may take a guessed radius from the guess, as factors.
-const GUESSED_RADIUS_RANGE: (f64, f64) = (0.7, 1.4);
+/// How far a fit among neighbours may take a radius from its seed's (what its track learnt,
+/// or a guess), as factors.
+const RADIUS_RANGE: (f64, f64) = (0.7, 1.4);
 
 /// A member as a fit iteration evaluates it: its centre, the square of its reach, its
-/// amplitude, radius and inverse edge width, and whether its radius is free.
+/// amplitude, radius and inverse edge width.
 struct InFit {
     at: PixelPoint,
     reach_sq: f64,
     amplitude: f64,
     radius_px: f64,
     per_edge: f64,
-    radius_free: bool,
 }
 
 impl InFit {
-    fn new(m: &Member, free: Free) -> Self {
+    fn new(m: &Member) -> Self {
         let reach = m.shape.reach_px() + MARGIN_PX;
         Self {
             at: m.at,
@@ -241,7 +243,6 @@ impl InFit {
             amplitude: m.shape.amplitude,
             radius_px: m.shape.radius_px,
             per_edge: 1.0 / m.shape.edge_px,
-            radius_free: free == Free::GuessedRadius && m.shape.guessed,
         }
     }
 
@@ -264,25 +265,15 @@ impl InFit {
         self.at(table, p).map_or(0.0, |[.., g]| self.amplitude * g)
     }
 
-    /// How many of [`InFit::values`] a fit with `free` takes: x, y and amplitude, then the
-    /// radius and edge where they are free.
-    fn unknowns(&self, free: Free) -> usize {
-        match free {
-            Free::Shape => 5,
-            Free::GuessedRadius if self.radius_free => 4,
-            Free::GuessedRadius => 3,
-        }
-    }
-
     /// The Jacobian values at a pixel where [`InFit::at`] found it (`dx`, `dy`, `r`, `z`
     /// and the disc's height `g`): x, y, amplitude (the disc's height per unit amplitude),
-    /// then radius and edge where free.
+    /// radius, then edge where free.
     #[inline]
     fn values(&self, [dx, dy, r, z, g]: [f64; 5], free: Free) -> [f64; 5] {
         let a = self.amplitude;
         let dg_dz = -g * (1.0 - g);
         let dg_dr = dg_dz * self.per_edge;
-        let mut values = [0.0, 0.0, g, 0.0, 0.0];
+        let mut values = [0.0, 0.0, g, -a * dg_dr, 0.0];
         // r grows as the centre moves away from the pixel; at the centre itself the centre's
         // derivatives are left out.
         if r > 1e-9 {
@@ -291,10 +282,7 @@ impl InFit {
             values[1] = along * dy;
         }
         if free == Free::Shape {
-            values[3] = -a * dg_dr;
             values[4] = -a * dg_dz * z * self.per_edge;
-        } else if self.radius_free {
-            values[3] = -a * dg_dr;
         }
         values
     }

@@ -5,7 +5,7 @@
 
 use nalgebra::{SMatrix, SVector};
 
-use super::{logistic_table, Floor, Free, InFit, Member, FLOOR_TERMS, GUESSED_RADIUS_RANGE};
+use super::{logistic_table, Floor, Free, InFit, Member, FLOOR_TERMS, RADIUS_RANGE};
 
 /// A step's unknowns at most: the floor's, then x, y, amplitude, radius and edge.
 const TERMS: usize = FLOOR_TERMS + 5;
@@ -26,9 +26,9 @@ pub(super) struct Stepped {
 
 impl Fit {
     /// One step against `samples` (x, y, grey level) with `others`' light taken out, the
-    /// radius and edge free as `free` says (a guessed radius kept within
-    /// [`GUESSED_RADIUS_RANGE`] of `seed_radius_px`); `None` where the pixels do not pin the
-    /// unknowns (too few of them, or a singular system).
+    /// radius and edge free as `free` says (a radius among neighbours kept within
+    /// [`RADIUS_RANGE`] of `seed_radius_px`); `None` where the pixels do not pin the unknowns
+    /// (too few of them, or a singular system).
     pub(super) fn step(
         &mut self,
         samples: &[(f64, f64, f64)],
@@ -38,9 +38,7 @@ impl Fit {
     ) -> Option<Stepped> {
         let (step, cost) = match free {
             Free::Shape => self.solve::<{ FLOOR_TERMS + 5 }>(samples, others, Free::Shape)?,
-            Free::GuessedRadius => {
-                self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::GuessedRadius)?
-            }
+            Free::Radius => self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::Radius)?,
         };
         if step.iter().any(|v| !v.is_finite()) {
             return None;
@@ -57,12 +55,11 @@ impl Fit {
                 m.shape.radius_px = (m.shape.radius_px + step[6]).max(0.0);
                 m.shape.edge_px = (m.shape.edge_px + step[7]).clamp(0.05, 5.0);
             }
-            Free::GuessedRadius if m.shape.guessed => {
-                let (low, high) = GUESSED_RADIUS_RANGE;
+            Free::Radius => {
+                let (low, high) = RADIUS_RANGE;
                 m.shape.radius_px = (m.shape.radius_px + step[6])
                     .clamp(low * seed_radius_px, high * seed_radius_px);
             }
-            Free::GuessedRadius => {}
         }
         Some(Stepped {
             moved_px: step[3].abs() + step[4].abs(),
@@ -70,10 +67,10 @@ impl Fit {
         })
     }
 
-    /// The step (floor, x, y, amplitude, then radius and edge where `N` has room for them)
-    /// and the sum of squared residuals over `samples` before it; an unknown the fit does not
-    /// take is held. `N` is the unknowns' count at most, so that the sums are no larger than
-    /// the fit needs. Inlined where `free` is known, so that the pixel loop is made for it.
+    /// The step (floor, x, y, amplitude, radius, then edge where `N` has room for it) and the
+    /// sum of squared residuals over `samples` before it; `N` is the unknowns' count, so that
+    /// the sums are no larger than the fit needs. Inlined where `free` is known, so that the
+    /// pixel loop is made for it.
     #[inline(always)]
     fn solve<const N: usize>(
         &self,
@@ -82,9 +79,8 @@ impl Fit {
         free: Free,
     ) -> Option<([f64; TERMS], f64)> {
         let table = logistic_table();
-        let own = InFit::new(&self.member, free);
-        let unknowns = FLOOR_TERMS + own.unknowns(free);
-        if samples.len() <= 2 * unknowns {
+        let own = InFit::new(&self.member);
+        if samples.len() <= 2 * N {
             return None;
         }
         let floor = &self.floor;
@@ -109,10 +105,6 @@ impl Fit {
             jtj.syger(1.0, &j, &j, 1.0);
             jtr.axpy(residual, &j, 1.0);
             cost += residual * residual;
-        }
-        for t in unknowns..N {
-            jtj[(t, t)] = 1.0;
-            jtr[t] = 0.0;
         }
         jtj.fill_upper_triangle_with_lower_triangle();
         let solved = jtj.cholesky()?.solve(&jtr);

@@ -1,7 +1,7 @@
 //! One camera's overlapping particles measured in sweeps: each particle in turn fitted alone
 //! against its pixels with its neighbours' modelled images taken out, until no particle
-//! moves. A particle's fit is then small (its centre, amplitude, a guessed radius, and the
-//! floor under it) however many particles touch in a chain, and every particle is fitted once
+//! moves. A particle's fit is then small (its centre, amplitude, radius, and the floor under
+//! it) however many particles touch in a chain, and every particle is fitted once
 //! per sweep, not once in every group it belongs to.
 
 use std::collections::HashMap;
@@ -117,8 +117,8 @@ impl Sweep {
             .collect();
     }
 
-    /// One Gauss-Newton step of particle `i`'s fit (its floor, centre, amplitude and a
-    /// guessed radius) against its pixels with its neighbours' light taken out; how far it
+    /// One Gauss-Newton step of particle `i`'s fit (its floor, centre, amplitude and radius)
+    /// against its pixels with its neighbours' light taken out; how far it
     /// moved, pixels.
     fn step(&mut self, i: usize) -> f64 {
         let mut others = std::mem::take(&mut self.others);
@@ -129,7 +129,7 @@ impl Sweep {
         let stepped = fit.step(
             &self.samples[i],
             &others,
-            Free::GuessedRadius,
+            Free::Radius,
             seed.shape.radius_px,
         );
         self.others = others;
@@ -150,7 +150,7 @@ impl Sweep {
     fn models<'s>(&'s self, ids: &'s [usize]) -> impl Iterator<Item = InFit> + 's {
         ids.iter()
             .filter(|&&j| !self.gone[j])
-            .map(|&j| InFit::new(&self.fits[j].member, Free::GuessedRadius))
+            .map(|&j| InFit::new(&self.fits[j].member))
     }
 
     /// Particle `id`'s index, if it was added.
