@@ -683,6 +683,25 @@ mod tests {
     }
 
     #[test]
+    fn particles_whose_images_grew_since_their_tracks_learnt_them_are_pinned_where_they_are() {
+        // Nearer the cameras than when their tracks learnt their shapes (radius 3 px), the
+        // particles' images are a fifth wider: a fit holding the learnt radius leaves rings
+        // of light to its floor and pulls the centres.
+        let grown = |x, y| {
+            let mut m = disc(x, y);
+            m.shape.radius_px = 3.6;
+            m
+        };
+        let truth = [grown(20.3, 15.6), grown(25.1, 16.1)];
+        let pixels = draw(46, 32, &truth);
+        let image = ImageView::new(46, 32, &pixels).expect("sized");
+        let seeds = [disc(21.0, 15.0), disc(24.3, 16.8)];
+        let fitted = refit(image, &seeds).expect("fits");
+        assert!(fitted.settled);
+        assert_pinned(&fitted, &truth);
+    }
+
+    #[test]
     fn a_fit_whose_shapes_do_not_match_its_particles_measures_neither() {
         let truth = [disc(20.0, 20.0), disc(21.0, 20.0)];
         let pixels = draw(40, 40, &truth);
