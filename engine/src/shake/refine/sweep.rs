@@ -1,8 +1,8 @@
 //! One camera's overlapping particles measured in sweeps: each particle in turn fitted alone
 //! against its pixels with its neighbours' modelled images taken out, until no particle
 //! moves. A particle's fit is then small (its centre, amplitude, radius, and the floor under
-//! it) however many particles touch in a chain, and every particle is fitted once
-//! per sweep, not once in every group it belongs to.
+//! it) however many particles touch in a chain, and every particle is fitted once per sweep,
+//! not once in every group it belongs to.
 
 use std::collections::HashMap;
 
@@ -118,8 +118,7 @@ impl Sweep {
     }
 
     /// One Gauss-Newton step of particle `i`'s fit (its floor, centre, amplitude and radius)
-    /// against its pixels with its neighbours' light taken out; how far it
-    /// moved, pixels.
+    /// against its pixels with its neighbours' light taken out; how far it moved, pixels.
     fn step(&mut self, i: usize) -> f64 {
         let mut others = std::mem::take(&mut self.others);
         others.clear();
