@@ -31,9 +31,9 @@ const MAX_ITERATIONS: usize = 15;
 const CONVERGED_STEP_PX: f64 = 5e-3;
 
 /// Fits `seeds.len()` spots plus a constant floor to `samples` (x, y, value) starting from the
-/// seeds. `None` when the fit does not converge, or a spot ends implausibly (gone flat or
-/// negative, too narrow or wide, or far from its seed); spots that merged into each other are
-/// judged by [`SpotFit::is_trustworthy`].
+/// seeds. `None` when the fit does not converge, or a step takes a spot where its particle
+/// cannot be (gone flat or negative, too narrow or wide, or far from its seed); spots that
+/// merged into each other are judged by [`SpotFit::is_trustworthy`].
 pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit> {
     // Fixed sizes let the compiler unroll the per-pixel work; regions of more than four
     // particles are not fitted.
@@ -44,23 +44,9 @@ pub fn fit_spots(samples: &[(f64, f64, f64)], seeds: &[Spot]) -> Option<SpotFit>
         4 => levenberg_marquardt::<21>(samples, seeds)?,
         _ => return None,
     };
-    let spots: Vec<Spot> = (0..seeds.len())
-        .map(|k| Spot {
-            x: params[1 + PER_SPOT * k],
-            y: params[2 + PER_SPOT * k],
-            amplitude: params[3 + PER_SPOT * k],
-            sigma: params[4 + PER_SPOT * k].abs(),
-            flatness: params[5 + PER_SPOT * k],
-        })
-        .collect();
-    let plausible = spots.iter().zip(seeds).all(|(s, seed)| {
-        s.amplitude > 0.0
-            && s.sigma > 0.3
-            && s.sigma < 3.0 * seed.sigma
-            && (s.x - seed.x).hypot(s.y - seed.y) < 2.0 * seed.sigma
-    });
+    let spots: Vec<Spot> = (0..seeds.len()).map(|k| spot_in(&params, k)).collect();
     let rms_residual = (cost / samples.len() as f64).sqrt();
-    plausible.then_some(SpotFit {
+    Some(SpotFit {
         spots,
         rms_residual,
         position_sigma_px,
@@ -137,6 +123,16 @@ impl SpotFit {
 }
 
 impl Spot {
+    /// Whether a fitted spot may still be the particle it was seeded as (`seed`): brighter
+    /// than the floor, neither collapsed nor spread far beyond the seed's width, and near
+    /// where it was seeded.
+    fn is_plausible(&self, seed: &Spot) -> bool {
+        self.amplitude > 0.0
+            && self.sigma > 0.3
+            && self.sigma < 3.0 * seed.sigma
+            && (self.x - seed.x).hypot(self.y - seed.y) < 2.0 * seed.sigma
+    }
+
     /// Distance from the centre at which the spot falls to half its amplitude, pixels.
     pub fn half_width(&self) -> f64 {
         self.sigma * std::f64::consts::SQRT_2 * std::f64::consts::LN_2.powf(0.5 / self.flatness)
@@ -188,6 +184,13 @@ fn levenberg_marquardt<const N: usize>(
             params = trial;
             current = next;
             damping = (damping / 3.0).max(1e-9);
+            // A spot taken where its particle cannot be (most often by the first step) ends
+            // the fit as it would end after every step left: such fits seldom come back, and
+            // they were most of the steps fitting three or four spots took.
+            let implausible = |k: usize| !spot_in(params.as_slice(), k).is_plausible(&seeds[k]);
+            if (0..seeds.len()).any(implausible) {
+                return None;
+            }
             if moved < CONVERGED_STEP_PX {
                 let inverse = current.normal.try_inverse()?;
                 let variance = current.cost / (samples.len() - N) as f64;
@@ -215,6 +218,18 @@ fn levenberg_marquardt<const N: usize>(
     None
 }
 
+/// Spot `k` of a fit's parameters (the floor first, then [`PER_SPOT`] values per spot).
+fn spot_in(params: &[f64], k: usize) -> Spot {
+    let at = 1 + PER_SPOT * k;
+    Spot {
+        x: params[at],
+        y: params[at + 1],
+        amplitude: params[at + 2],
+        sigma: params[at + 3].abs(),
+        flatness: params[at + 4],
+    }
+}
+
 /// The sum of squared residuals at some parameters, with the Gauss-Newton normal equations
 /// there (`J^T J` and `J^T r`).
 struct Evaluation<const N: usize> {
@@ -231,8 +246,10 @@ fn evaluate<const N: usize>(
     params: &SVector<f64, N>,
 ) -> Evaluation<N> {
     let spots = (N - 1) / PER_SPOT;
-    let mut normal = SMatrix::<f64, N, N>::zeros();
-    let mut gradient = SVector::<f64, N>::zeros();
+    // Plain arrays, the loops over them unrolled for `N`: the normal sums are most of a
+    // pixel's work.
+    let mut normal = [[0.0; N]; N];
+    let mut gradient = [0.0; N];
     let mut cost = 0.0;
     let mut row = [0.0; N];
     row[0] = 1.0;
@@ -277,16 +294,17 @@ fn evaluate<const N: usize>(
         }
         let residual = v - value;
         cost += residual * residual;
-        let jacobian_row = SVector::<f64, N>::from(row);
-        gradient += jacobian_row * residual;
-        normal.syger(1.0, &jacobian_row, &jacobian_row, 1.0);
+        for a in 0..N {
+            gradient[a] += row[a] * residual;
+            for b in 0..=a {
+                normal[a][b] += row[a] * row[b];
+            }
+        }
     }
-    // syger writes the lower triangle only.
-    normal.fill_upper_triangle_with_lower_triangle();
     Evaluation {
         cost,
-        normal,
-        gradient,
+        normal: SMatrix::<f64, N, N>::from_fn(|a, b| normal[a.max(b)][a.min(b)]),
+        gradient: SVector::<f64, N>::from(gradient),
     }
 }
 
