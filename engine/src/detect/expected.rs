@@ -5,7 +5,7 @@
 //!
 //! [`DetectConfig::separate_expected`]: super::DetectConfig::separate_expected
 
-use super::fit::{fit_to_region, spot_seed};
+use super::fit::{fit_to_region, raw_samples_around, spot_seed};
 use super::regions::{nearest_pixel, pixel_on, Context, ResolvedRegion};
 use super::split::MAX_SPOTS_PER_REGION;
 use super::spots::{Spot, SpotFit};
@@ -21,18 +21,27 @@ const MIN_EXPECTED_APART_PX: f64 = 1.0;
 /// Closer ones come out pinned by the fit's covariance but biased by the spot model's mismatch.
 const CUT_REFIT_MIN_SEPARATION_IN_HALF_WIDTHS: f64 = 0.85;
 
+/// A way to part a region from what its tracks know: given the indices (into the expected
+/// positions) of the particles expected on it, its pixels as the camera saw them (x, y, grey
+/// level; a margin of background around it, other regions left out) and the diameter of each
+/// particle's share of its area, the particles' centres, or `None` where it cannot tell them.
+pub type Parting<'p> = &'p dyn Fn(&[usize], &[(f64, f64, f64)], f64) -> Option<Vec<PixelPoint>>;
+
 impl Detector {
     /// Looks again where tracks expect particles (`expected`, raw pixels, e.g. from each track's
     /// motion). Where the fit explains a region's pixels, its spots replace the region's
     /// detections: [`Separation::Fitted`] where the fit is trustworthy, else
     /// [`Separation::Cut`] (good for keeping the tracks, not for measuring). Regions of more than
-    /// four expected particles are left as they are. Called after [`Self::detect`] on the same
+    /// four expected particles are left as they are. Where `parting` is given, a region is
+    /// parted by it first ([`Separation::Fitted`] detections at its centres), and fitted as
+    /// spots only where it cannot tell the particles. Called after [`Self::detect`] on the same
     /// image, with the same `config`, where [`DetectConfig::separate_expected`] asks for it.
     pub fn separate_expected(
         &mut self,
         image: ImageView<'_>,
         config: &DetectConfig,
         expected: &[PixelPoint],
+        parting: Option<Parting<'_>>,
         out: &mut Vec<Detection>,
     ) {
         if expected.len() < 2 || self.regions.resolved.is_empty() {
@@ -43,13 +52,18 @@ impl Detector {
         for group in claims.chunk_by(|a, b| a.0 == b.0) {
             let region = self.regions.resolved[group[0].0];
             let only_cut = is_only_cut(&region, group.len(), out);
-            if !worth_refitting(&region, group, only_cut) {
+            if !worth_refitting(&region, group, expected, only_cut) {
                 continue;
             }
-            let from = nearest_pixel(image, group[0].1);
+            let from = nearest_pixel(image, expected[group[0].1]);
             self.regions.gather_region(image, region.label, from);
-            let expected: Vec<PixelPoint> = group.iter().map(|&(_, p)| p).collect();
-            if let Some(parts) = self.refit(image, config, &region, &expected, only_cut) {
+            let indices: Vec<usize> = group.iter().map(|&(_, i)| i).collect();
+            let parted = parting.and_then(|part| self.part(image, config, &region, &indices, part));
+            let parts = parted.or_else(|| {
+                let points: Vec<PixelPoint> = indices.iter().map(|&i| expected[i]).collect();
+                self.refit(image, config, &region, &points, only_cut)
+            });
+            if let Some(parts) = parts {
                 replaced.push((group[0].0, parts));
             }
         }
@@ -58,13 +72,14 @@ impl Detector {
         }
     }
 
-    /// The expected positions that fall on a measured region of the current image, with that
-    /// region's index in `resolved`, sorted by region.
-    fn claims(&self, image: ImageView<'_>, expected: &[PixelPoint]) -> Vec<(usize, PixelPoint)> {
+    /// The expected positions (by index) that fall on a measured region of the current
+    /// image, with that region's index in `resolved`, sorted by region.
+    fn claims(&self, image: ImageView<'_>, expected: &[PixelPoint]) -> Vec<(usize, usize)> {
         let (mask, labels) = (&self.regions.mask, &self.regions.labels);
-        let mut claims: Vec<(usize, PixelPoint)> = expected
+        let mut claims: Vec<(usize, usize)> = expected
             .iter()
-            .filter_map(|&p| {
+            .enumerate()
+            .filter_map(|(i, &p)| {
                 let j = pixel_on(image, p)?;
                 if mask.get(j) != Some(&2) {
                     return None;
@@ -75,11 +90,49 @@ impl Detector {
                     .resolved
                     .binary_search_by_key(&labels[j], |r| r.label)
                     .ok()?;
-                Some((r, p))
+                Some((r, i))
             })
             .collect();
         claims.sort_by_key(|&(r, _)| r);
         claims
+    }
+
+    /// The region (whose pixels were just gathered) parted by `part` from the particles
+    /// expected on it (`indices`); its new detections, or `None` where `part` cannot tell them.
+    fn part(
+        &self,
+        image: ImageView<'_>,
+        config: &DetectConfig,
+        region: &ResolvedRegion,
+        indices: &[usize],
+        part: Parting<'_>,
+    ) -> Option<Vec<Detection>> {
+        let context = self.context(image, config);
+        let pixels = raw_samples_around(&context, &self.regions.region, region.label);
+        let share = region.area_px as f64 / indices.len() as f64;
+        let diameter_px = (4.0 * share / std::f64::consts::PI).sqrt();
+        let centres = part(indices, &pixels, diameter_px)?;
+        let parts = centres.into_iter().map(|centroid| Detection {
+            centroid,
+            diameter_px,
+            brightness: context.brightness_at(centroid),
+            area_px: share.round() as u32,
+            separation: Separation::Fitted,
+        });
+        Some(parts.collect())
+    }
+
+    /// What measuring the current image's regions reads.
+    fn context<'c>(&'c self, image: ImageView<'c>, config: &'c DetectConfig) -> Context<'c> {
+        Context {
+            image,
+            config,
+            blurred: &self.blur.blurred,
+            background: &self.background,
+            mask: &self.regions.mask,
+            labels: &self.regions.labels,
+            tracked: &[],
+        }
     }
 
     /// The region (whose pixels were just gathered) fitted with one spot at each expected
@@ -92,15 +145,7 @@ impl Detector {
         expected: &[PixelPoint],
         only_cut: bool,
     ) -> Option<Vec<Detection>> {
-        let context = Context {
-            image,
-            config,
-            blurred: &self.blur.blurred,
-            background: &self.background,
-            mask: &self.regions.mask,
-            labels: &self.regions.labels,
-            tracked: &[],
-        };
+        let context = self.context(image, config);
         let share = region.area_px as f64 / expected.len() as f64;
         let diameter_px = (4.0 * share / std::f64::consts::PI).sqrt();
         let seeds: Vec<Spot> = expected
@@ -163,15 +208,22 @@ fn is_only_cut(region: &ResolvedRegion, expected: usize, out: &[Detection]) -> b
 /// Whether a region with these expectations (`group`) is fitted again: more expected than found,
 /// or only cut; at most as many as a fit takes; and distinct (two tracks expecting one spot are
 /// one particle followed twice, not two).
-fn worth_refitting(region: &ResolvedRegion, group: &[(usize, PixelPoint)], only_cut: bool) -> bool {
+fn worth_refitting(
+    region: &ResolvedRegion,
+    group: &[(usize, usize)],
+    expected: &[PixelPoint],
+    only_cut: bool,
+) -> bool {
     let k = group.len();
     let more_expected_than_found = k > region.count.max(1);
     if !(more_expected_than_found || only_cut) || k > MAX_SPOTS_PER_REGION {
         return false;
     }
     group.iter().enumerate().all(|(i, a)| {
-        group[i + 1..]
-            .iter()
-            .all(|b| (a.1.x - b.1.x).hypot(a.1.y - b.1.y) >= MIN_EXPECTED_APART_PX)
+        let a = expected[a.1];
+        group[i + 1..].iter().all(|b| {
+            let b = expected[b.1];
+            (a.x - b.x).hypot(a.y - b.y) >= MIN_EXPECTED_APART_PX
+        })
     })
 }

@@ -59,13 +59,32 @@ pub(super) fn fit_to_region(
     label: u32,
     seeds: &[Spot],
 ) -> Option<SpotFit> {
-    fit_spots(&samples_around(context, region, label), seeds)
+    let blurred = |j: usize| Some(f64::from(context.blurred[j]) / 256.0);
+    fit_spots(&samples_around(context, region, label, blurred), seeds)
 }
 
-/// The pixels within the margin of a region (x, y, blurred value in grey levels): its own and
-/// the background's, not other regions'. Only those near the region: an elongated region's
-/// bounding box is mostly background far from either particle.
-fn samples_around(context: &Context<'_>, region: &[Pixel], label: u32) -> Vec<(f64, f64, f64)> {
+/// The pixels within the margin of a region as the camera saw them (x, y, grey level), but
+/// those at the sensor's full scale (a clipped pixel says only that the light was at least
+/// that much).
+pub(super) fn raw_samples_around(
+    context: &Context<'_>,
+    region: &[Pixel],
+    label: u32,
+) -> Vec<(f64, f64, f64)> {
+    let pixels = context.image.pixels;
+    let raw = |j: usize| (pixels[j] < u8::MAX).then(|| f64::from(pixels[j]));
+    samples_around(context, region, label, raw)
+}
+
+/// The pixels within the margin of a region (x, y, and `value` of each, where it has one): its
+/// own and the background's, not other regions'. Only those near the region: an elongated
+/// region's bounding box is mostly background far from either particle.
+fn samples_around(
+    context: &Context<'_>,
+    region: &[Pixel],
+    label: u32,
+    value: impl Fn(usize) -> Option<f64>,
+) -> Vec<(f64, f64, f64)> {
     let (w, h) = (context.image.width, context.image.height);
     let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
     for p in region {
@@ -97,10 +116,12 @@ fn samples_around(context: &Context<'_>, region: &[Pixel], label: u32) -> Vec<(f
     for y in y0..=y1 {
         for x in x0..=x1 {
             let j = y * w + x;
-            if near[(y - y0) * bw + (x - x0)]
-                && (mask[j] == 0 || (mask[j] == 2 && labels[j] == label))
-            {
-                samples.push((x as f64, y as f64, context.blurred[j] as f64 / 256.0));
+            let own = mask[j] == 0 || (mask[j] == 2 && labels[j] == label);
+            if !own || !near[(y - y0) * bw + (x - x0)] {
+                continue;
+            }
+            if let Some(v) = value(j) {
+                samples.push((x as f64, y as f64, v));
             }
         }
     }

@@ -20,6 +20,7 @@ use crate::ImageView;
 mod background;
 mod blur;
 mod expected;
+pub use expected::Parting;
 mod fit;
 mod regions;
 mod split;
@@ -532,7 +533,7 @@ mod tests {
         detector.detect(image, &config, &mut out);
         let expected: Vec<PixelPoint> =
             expected.iter().map(|&(x, y)| PixelPoint { x, y }).collect();
-        detector.separate_expected(image, &config, &expected, &mut out);
+        detector.separate_expected(image, &config, &expected, None, &mut out);
         out
     }
 

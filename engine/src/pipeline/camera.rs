@@ -1,9 +1,10 @@
 //! One camera's own stages: detection, rectification and per-camera linking.
 
 use super::{PipelineConfig, Spot};
-use crate::detect::{Detection, Detector};
+use crate::detect::{Detection, Detector, Parting};
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::link::{CameraLinker, CostScale, Feature, LinkedFeature};
+use crate::shake::refine::{CameraShake, Shape};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
 
@@ -12,6 +13,14 @@ use crate::ImageView;
 pub(super) struct Camera {
     pub(super) detector: Detector,
     linker: CameraLinker,
+}
+
+/// What the 3D tracks expect in one camera's image (track-first; none otherwise): each
+/// prediction (rectified) with its gate and its particle's shape in this camera, and what the
+/// camera's shake has learnt, to part the regions several of them fall on.
+pub(super) struct Expected<'a> {
+    pub(super) predicted: Vec<(RectPoint, f64, Option<Shape>)>,
+    pub(super) shake: &'a CameraShake,
 }
 
 /// A camera's linked features and, index for index, the detection each came from.
@@ -51,33 +60,48 @@ impl Camera {
         }
     }
 
-    /// Detects into `detections` (regions a 3D track's `predicted` position falls on are left
+    /// Detects into `detections` (regions a 3D track's predicted position falls on are left
     /// to that track's fit), looking again where the tracks expect particles (the 2D tracks'
-    /// expectations and the 3D tracks' `predicted` positions, rectified, with their gates),
-    /// and links the rectified features (detections whose centroid the lens model
-    /// cannot undistort are left out). `to_rect` and `from_rect` map this camera's raw pixels
-    /// to the rectified image and back.
+    /// expectations and the 3D tracks' predictions, `expected`), and links the rectified
+    /// features (detections whose centroid the lens model cannot undistort are left out). With
+    /// tracks first, a region is parted with the tracks' shapes, and fitted as spots only
+    /// where they cannot tell its particles. `to_rect` and `from_rect` map this camera's raw
+    /// pixels to the rectified image and back.
     pub(super) fn push(
         &mut self,
         image: ImageView<'_>,
         config: &PipelineConfig,
         scale: CostScale,
         detections: &mut Vec<Detection>,
-        predicted: &[(RectPoint, f64)],
+        expected: &Expected<'_>,
         (to_rect, from_rect): (
             impl Fn(PixelPoint) -> Option<RectPoint>,
             impl Fn(RectPoint) -> Option<PixelPoint>,
         ),
     ) -> CameraOutput {
-        let tracked: Vec<PixelPoint> = predicted.iter().filter_map(|p| from_rect(p.0)).collect();
+        let (tracked, shapes): (Vec<PixelPoint>, Vec<Option<Shape>>) = expected
+            .predicted
+            .iter()
+            .filter_map(|&(rect, _, shape)| Some((from_rect(rect)?, shape)))
+            .unzip();
         self.detector
             .detect_tracked(image, &config.detect, &tracked, detections);
         if config.detect.separate_expected {
             // The 3D tracks' predictions first, then the 2D tracks' own expectations.
-            let mut expected = tracked;
-            expected.extend(uncovered_expectations(&self.linker, predicted).filter_map(&from_rect));
+            let mut points = tracked;
+            points.extend(
+                uncovered_expectations(&self.linker, &expected.predicted).filter_map(&from_rect),
+            );
+            let part = |group: &[usize], pixels: &[(f64, f64, f64)], share_px: f64| {
+                let seeds: Vec<(PixelPoint, Option<Shape>)> = group
+                    .iter()
+                    .map(|&i| (points[i], shapes.get(i).copied().flatten()))
+                    .collect();
+                expected.shake.part(image, pixels, &seeds, share_px)
+            };
+            let parting: Option<Parting<'_>> = config.tracks.track_first.then_some(&part);
             self.detector
-                .separate_expected(image, &config.detect, &expected, detections);
+                .separate_expected(image, &config.detect, &points, parting, detections);
         }
         let (features, detection_of): (Vec<Feature>, Vec<usize>) = detections
             .iter()
@@ -106,7 +130,7 @@ impl Camera {
 /// covers: two expectations of one particle would be fitted as two particles.
 fn uncovered_expectations<'a>(
     linker: &'a CameraLinker,
-    predicted: &'a [(RectPoint, f64)],
+    predicted: &'a [(RectPoint, f64, Option<Shape>)],
 ) -> impl Iterator<Item = RectPoint> + 'a {
     let largest_gate = predicted.iter().map(|p| p.1).fold(0.0, f64::max);
     let grid = PointGrid::new(

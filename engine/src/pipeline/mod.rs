@@ -13,7 +13,7 @@ use crate::detect::{Detection, Separation};
 use crate::geometry::{CalibrationError, PixelPoint, RectPoint, Rectification, StereoRig};
 use crate::link::{CostScale, LinkedFeature};
 use crate::predict::{self, Prediction};
-use crate::shake::refine::CameraShake;
+use crate::shake::refine::{best_known, CameraShake};
 use crate::shake::{self, Shaken};
 use crate::stereo::{match_stereo, DepthLearner, PairHistory, StereoSearch};
 use crate::tracks::{Pair, Sample, Sight, Tracks};
@@ -25,7 +25,7 @@ mod config;
 mod found;
 mod output;
 
-use camera::{Camera, CameraOutput};
+use camera::{Camera, CameraOutput, Expected};
 pub use config::PipelineConfig;
 pub use output::{FrameOutput, FrameRef, FrameStats, MatchedPoint};
 
@@ -274,8 +274,17 @@ impl Pipeline {
         out: &mut FrameOutput,
     ) -> (CameraOutput, CameraOutput) {
         let rect = &self.rectification;
-        let predicted_left: Vec<_> = predictions.iter().map(|p| (p.left, p.gate_px)).collect();
-        let predicted_right: Vec<_> = predictions.iter().map(|p| (p.right, p.gate_px)).collect();
+        let expected = |c: usize| Expected {
+            predicted: predictions
+                .iter()
+                .map(|p| {
+                    let shapes = self.tracks.shapes(p.key);
+                    (p.at(c), p.gate_px, best_known(shapes[c], shapes[1 - c]))
+                })
+                .collect(),
+            shake: &self.shake[c],
+        };
+        let (expected_left, expected_right) = (expected(0), expected(1));
         let scale = cost_scale(rect);
         let config = &self.config;
         let (left_camera, right_camera) = (&mut self.left, &mut self.right);
@@ -288,7 +297,7 @@ impl Pipeline {
                     config,
                     scale,
                     detections_left,
-                    &predicted_left,
+                    &expected_left,
                     (|p| rect.left_to_rect(p), |p| rect.rect_to_left(p)),
                 )
             },
@@ -298,7 +307,7 @@ impl Pipeline {
                     config,
                     scale,
                     detections_right,
-                    &predicted_right,
+                    &expected_right,
                     (|p| rect.right_to_rect(p), |p| rect.rect_to_right(p)),
                 )
             },

@@ -11,6 +11,7 @@
 //! measured); with the widths held near what the tracks learnt, the centres are pinned.
 
 mod group;
+mod part;
 mod step;
 mod sweep;
 
@@ -208,6 +209,17 @@ fn stayed(fitted: &Fitted, seeds: &[Member], may_vanish: impl Fn(usize) -> bool)
         .all(|(k, (f, s))| {
             may_vanish(k) || (f.at.x - s.at.x).hypot(f.at.y - s.at.y) <= s.shape.radius_px
         })
+}
+
+/// The shape to fit a particle with: its own in this camera, else the one its track learnt in
+/// the other camera (both see it from nearly the same distance), a learnt shape before a
+/// guessed one.
+pub(crate) fn best_known(own: Option<Shape>, other: Option<Shape>) -> Option<Shape> {
+    match (own, other) {
+        (Some(a), _) if !a.guessed => Some(a),
+        (_, Some(b)) if !b.guessed => Some(b),
+        (a, b) => a.or(b),
+    }
 }
 
 /// What a fit may change besides the members' centres and amplitudes.
@@ -988,6 +1000,47 @@ mod tests {
             panic!("{measured:?}");
         };
         assert!((c.x - 20.3).hypot(c.y - 15.6) < 0.05, "{c:?}");
+    }
+
+    /// Every pixel of `image` as a fit sample.
+    fn all_pixels(image: ImageView<'_>) -> Vec<(f64, f64, f64)> {
+        (0..image.width * image.height)
+            .map(|i| {
+                let (x, y) = (i % image.width, i / image.width);
+                (x as f64, y as f64, f64::from(image.pixels[i]))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_region_two_tracks_expect_is_parted_with_their_shapes() {
+        // Two discs 4 px apart in one region, each track predicting its particle most of a
+        // pixel off: the shapes the tracks learnt pin both centres.
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let pixels = draw(44, 30, &truth);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let expected = [
+            (at(21.0, 15.0), Some(truth[0].shape)),
+            (at(23.6, 16.8), Some(truth[1].shape)),
+        ];
+        let camera = learnt_camera();
+        let centres = camera
+            .part(image, &all_pixels(image), &expected, 6.0)
+            .expect("parted");
+        for (c, t) in centres.iter().zip(&truth) {
+            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
+        }
+        // Shapes half the particles' size explain no centres: the region is not parted.
+        let mut small = truth[0].shape;
+        small.radius_px = 1.5;
+        let shrunk = [(expected[0].0, Some(small)), (expected[1].0, Some(small))];
+        assert_eq!(camera.part(image, &all_pixels(image), &shrunk, 6.0), None);
+        // A camera that has not learnt from lone particles parts nothing.
+        let unlearnt = CameraShake::default();
+        assert_eq!(
+            unlearnt.part(image, &all_pixels(image), &expected, 6.0),
+            None
+        );
     }
 
     #[test]

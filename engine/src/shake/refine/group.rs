@@ -3,7 +3,9 @@
 //! at once in sweeps ([`Sweep`]), and each particle judged as a fit of its group would be.
 
 use super::sweep::Sweep;
-use super::{stayed, Fitted, Measured, Member, Neighbourhood, Seen, Shape, Wanted, MARGIN_PX};
+use super::{
+    best_known, stayed, Fitted, Measured, Member, Neighbourhood, Seen, Shape, Wanted, MARGIN_PX,
+};
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
@@ -303,17 +305,6 @@ impl<'a> Group<'a> {
 fn within(image: ImageView<'_>, at: PixelPoint, margin: f64) -> bool {
     let inside = |c: f64, size: usize| c >= margin && c <= size as f64 - 1.0 - margin;
     inside(at.x, image.width) && inside(at.y, image.height)
-}
-
-/// The shape to fit a particle with: its own in this camera, else the one its track learnt in
-/// the other camera (both see it from nearly the same distance), a learnt shape before a
-/// guessed one.
-fn best_known(own: Option<Shape>, other: Option<Shape>) -> Option<Shape> {
-    match (own, other) {
-        (Some(a), _) if !a.guessed => Some(a),
-        (_, Some(b)) if !b.guessed => Some(b),
-        (a, b) => a.or(b),
-    }
 }
 
 /// A detection no track knows, as a fit member: a disc of its diameter (at most `widest_px`

@@ -45,7 +45,26 @@ impl Sweep {
     /// Every particle fitted in turn until no particle moves by more than
     /// [`CONVERGED_STEP_PX`] in a sweep, or for as many sweeps as a fit takes steps.
     pub(super) fn run(&mut self, image: ImageView<'_>) {
-        self.prepare(image);
+        self.prepare(|m| window(image, &[(m.at, half_px(m))]));
+        self.sweep();
+    }
+
+    /// As [`Self::run`], each particle fitted against those of `pixels` (x, y, grey level)
+    /// in its box only.
+    pub(super) fn run_on(&mut self, pixels: &[(f64, f64, f64)]) {
+        self.prepare(|m| {
+            let half = half_px(m);
+            pixels
+                .iter()
+                .filter(|p| (p.0 - m.at.x).abs() <= half && (p.1 - m.at.y).abs() <= half)
+                .copied()
+                .collect()
+        });
+        self.sweep();
+    }
+
+    /// The sweeps of [`Self::run`] on prepared particles.
+    fn sweep(&mut self) {
         let n = self.seeds.len();
         let mut active = vec![true; n];
         for _ in 0..MAX_ITERATIONS {
@@ -65,17 +84,14 @@ impl Sweep {
         }
     }
 
-    /// Each particle's pixels and the particles whose light reaches them.
-    fn prepare(&mut self, image: ImageView<'_>) {
+    /// Each particle's pixels (`sample` of its seed) and the particles whose light reaches
+    /// them.
+    fn prepare(&mut self, sample: impl Fn(&Member) -> Vec<(f64, f64, f64)>) {
         let n = self.seeds.len();
         self.last_move_px = vec![f64::INFINITY; n];
         self.gone = vec![false; n];
         self.failed = vec![false; n];
-        self.samples = self
-            .seeds
-            .iter()
-            .map(|m| window(image, &[(m.at, half_px(m))]))
-            .collect();
+        self.samples = self.seeds.iter().map(sample).collect();
         self.fits = self
             .seeds
             .iter()
