@@ -1044,6 +1044,35 @@ mod tests {
     }
 
     #[test]
+    fn a_particle_no_track_knows_is_parted_with_a_shape_from_its_share_of_the_region() {
+        // The second particle has only a 2D track: its shape is guessed from its share of the
+        // region's area (6 px across: a radius of 3 px at one learnt radius per half size).
+        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
+        let pixels = draw(44, 30, &truth);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let expected = [
+            (at(21.0, 15.0), Some(truth[0].shape)),
+            (at(23.6, 16.8), None),
+        ];
+        let camera = CameraShake {
+            radius_per_half_diameter: Some(1.0),
+            ..learnt_camera()
+        };
+        let centres = camera
+            .part(image, &all_pixels(image), &expected, 6.0)
+            .expect("parted");
+        for (c, t) in centres.iter().zip(&truth) {
+            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
+        }
+        // Without a learnt radius per size there is no shape to part it with.
+        let unscaled = learnt_camera();
+        assert_eq!(
+            unscaled.part(image, &all_pixels(image), &expected, 6.0),
+            None
+        );
+    }
+
+    #[test]
     fn no_guessed_shape_is_wider_than_the_widest_lone_particle() {
         // A ghost pair 10 cm in front of the rig has a disparity of hundreds of pixels.
         let camera = CameraShake {
