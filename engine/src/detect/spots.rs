@@ -246,10 +246,8 @@ fn evaluate<const N: usize>(
     params: &SVector<f64, N>,
 ) -> Evaluation<N> {
     let spots = (N - 1) / PER_SPOT;
-    // Plain arrays, the loops over them unrolled for `N`: the normal sums are most of a
-    // pixel's work.
-    let mut normal = [[0.0; N]; N];
-    let mut gradient = [0.0; N];
+    let mut normal = SMatrix::<f64, N, N>::zeros();
+    let mut gradient = SVector::<f64, N>::zeros();
     let mut cost = 0.0;
     let mut row = [0.0; N];
     row[0] = 1.0;
@@ -294,17 +292,16 @@ fn evaluate<const N: usize>(
         }
         let residual = v - value;
         cost += residual * residual;
-        for a in 0..N {
-            gradient[a] += row[a] * residual;
-            for b in 0..=a {
-                normal[a][b] += row[a] * row[b];
-            }
-        }
+        let jacobian_row = SVector::<f64, N>::from(row);
+        gradient += jacobian_row * residual;
+        normal.syger(1.0, &jacobian_row, &jacobian_row, 1.0);
     }
+    // syger writes the lower triangle only.
+    normal.fill_upper_triangle_with_lower_triangle();
     Evaluation {
         cost,
-        normal: SMatrix::<f64, N, N>::from_fn(|a, b| normal[a.max(b)][a.min(b)]),
-        gradient: SVector::<f64, N>::from(gradient),
+        normal,
+        gradient,
     }
 }
 
