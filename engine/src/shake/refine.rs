@@ -526,6 +526,18 @@ impl CameraShake {
             None => self.radius_per_disparity? * w.disparity_px,
         };
         let at = w.detection.map(|d| seen[d].centroid).or(w.predicted_px)?;
+        self.guessed_shape(image, at, radius_px, edge_px)
+    }
+
+    /// A guessed shape of radius `radius_px` (no wider than the widest lone particle) and edge
+    /// `edge_px` at `at`, as bright as the image there; `None` for no radius.
+    fn guessed_shape(
+        &self,
+        image: ImageView<'_>,
+        at: PixelPoint,
+        radius_px: f64,
+        edge_px: f64,
+    ) -> Option<Shape> {
         (radius_px > 0.0).then(|| Shape {
             radius_px: radius_px.min(self.widest_px.unwrap_or(radius_px)),
             edge_px,

@@ -58,11 +58,6 @@ impl CameraShake {
         diameter_px: f64,
     ) -> Option<Shape> {
         let radius_px = self.radius_per_half_diameter? * 0.5 * diameter_px;
-        Some(Shape {
-            radius_px: radius_px.min(self.widest_px.unwrap_or(radius_px)),
-            edge_px: self.edge_px?,
-            amplitude: image.bilinear(at).max(1.0),
-            guessed: true,
-        })
+        self.guessed_shape(image, at, radius_px, self.edge_px?)
     }
 }
