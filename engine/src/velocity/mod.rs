@@ -6,6 +6,7 @@
 use std::cmp::Ordering;
 
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{check_non_negative, ConfigError};
@@ -181,6 +182,17 @@ struct Centred {
     cubic_term: Option<(Vector3<f64>, Vector3<f64>)>,
 }
 
+/// Tracks per parallel task when judging a frame's tracks: a track's fits are small.
+const TRACKS_PER_TASK: usize = 32;
+
+/// One track's vectors for a frame, as [`Velocities::judge`] found them.
+struct Judged {
+    centred: Option<Result<Centred, ()>>,
+    centred_plausible: bool,
+    causal: Option<VelocityVector>,
+    causal_plausible: bool,
+}
+
 /// The velocity stage: its settings, the rig's geometry, and what the scene's vectors have
 /// taught it about noise and curvature.
 #[derive(Debug, Clone)]
@@ -217,39 +229,60 @@ impl Velocities {
         seq: u64,
         out: &mut FrameOutput,
     ) {
+        let tracks: Vec<&Track3d> = tracks.collect();
+        // Each track's fits need only the track: spread over the cores, in track order.
+        let judged: Vec<Judged> = tracks
+            .par_iter()
+            .with_min_len(TRACKS_PER_TASK)
+            .map(|track| self.judge(track, seq))
+            .collect();
         let mut centred = Vec::new();
-        for track in tracks {
-            match self.centred_vector(track, seq) {
-                Some(Ok(found)) if self.is_plausible(&found.vector, track) => centred.push(found),
+        for j in judged {
+            match j.centred {
+                Some(Ok(found)) if j.centred_plausible => centred.push(found),
                 Some(Ok(_)) => out.stats.implausible += 1,
                 Some(Err(())) => out.stats.rejected += 1,
                 None => {}
             }
-            if let Some(v) = self.causal_vector(track, seq) {
-                if self.is_plausible(&v, track) {
-                    out.causal_vectors.push(v);
-                } else {
-                    out.stats.implausible += 1;
-                }
+            match j.causal {
+                Some(v) if j.causal_plausible => out.causal_vectors.push(v),
+                Some(_) => out.stats.implausible += 1,
+                None => {}
             }
         }
         // Live causal vectors are judged too: the holograms should not show what the
         // recording will drop.
         let test = self.neighbour_test();
-        let mut causal_outliers = outliers_among(out.causal_vectors.iter(), &test).into_iter();
+        let (causal_outliers, centred_outliers) = rayon::join(
+            || outliers_among(out.causal_vectors.iter(), &test),
+            || outliers_among(centred.iter().map(|c| &c.vector), &test),
+        );
+        let mut causal_outliers = causal_outliers.into_iter();
         out.causal_vectors
             .retain(|_| !causal_outliers.next().unwrap_or(false));
-        self.keep_centred(centred, out);
+        self.keep_centred(centred, &centred_outliers, out);
     }
 
-    /// Keeps the centred vectors that do not stray from their neighbours, counting their fits,
-    /// and learns from them after the frame, so a frame's sigmas do not depend on the order of
-    /// its tracks.
-    fn keep_centred(&mut self, centred: Vec<Centred>, out: &mut FrameOutput) {
+    /// One track's centred and causal vectors for frame `seq`, each with whether it is
+    /// plausible.
+    fn judge(&self, track: &Track3d, seq: u64) -> Judged {
+        let centred = self.centred_vector(track, seq);
+        let causal = self.causal_vector(track, seq);
+        Judged {
+            centred_plausible: matches!(&centred, Some(Ok(c)) if self.is_plausible(&c.vector, track)),
+            causal_plausible: causal.as_ref().is_some_and(|v| self.is_plausible(v, track)),
+            centred,
+            causal,
+        }
+    }
+
+    /// Keeps the centred vectors that do not stray from their neighbours (`outliers`, index
+    /// for index), counting their fits, and learns from them after the frame, so a frame's
+    /// sigmas do not depend on the order of its tracks.
+    fn keep_centred(&mut self, centred: Vec<Centred>, outliers: &[bool], out: &mut FrameOutput) {
         let m = self.config.half_window_frames;
-        let outliers = outliers_among(centred.iter().map(|c| &c.vector), &self.neighbour_test());
         let mut learnt = false;
-        for (found, outlier) in centred.into_iter().zip(outliers) {
+        for (found, &outlier) in centred.into_iter().zip(outliers) {
             if outlier {
                 out.stats.outliers += 1;
                 continue;

@@ -84,32 +84,57 @@ impl Fit {
             return None;
         }
         let floor = &self.floor;
-        let mut jtj = SMatrix::<f64, N, N>::zeros();
-        let mut jtr = SVector::<f64, N>::zeros();
+        // The normal equations' lower triangle and right-hand side, summed by hand: the
+        // floor's terms are all a pixel beyond the particle's reach adds to.
+        let mut jtj = [[0.0; N]; N];
+        let mut jtr = [0.0; N];
         let mut cost = 0.0;
         for &(x, y, v) in samples {
-            let mut j = SVector::<f64, N>::zeros();
-            j[0] = 1.0;
-            j[1] = x - floor.centre.0;
-            j[2] = y - floor.centre.1;
-            let mut model = floor.at((x, y));
+            let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
+            let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
             model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            if let Some(at) = own.at(table, (x, y)) {
-                model += own.amplitude * at[4];
-                let values = own.values(at, free);
-                for (t, value) in values[..N - FLOOR_TERMS].iter().enumerate() {
-                    j[FLOOR_TERMS + t] = *value;
+            match own.at(table, (x, y)) {
+                Some(at) => {
+                    model += own.amplitude * at[4];
+                    let values = own.values(at, free);
+                    let mut j = [0.0; N];
+                    j[0] = 1.0;
+                    j[1] = fx;
+                    j[2] = fy;
+                    j[FLOOR_TERMS..].copy_from_slice(&values[..N - FLOOR_TERMS]);
+                    let residual = v - model;
+                    accumulate(&mut jtj, &mut jtr, &j, residual);
+                    cost += residual * residual;
+                }
+                None => {
+                    let residual = v - model;
+                    accumulate(&mut jtj, &mut jtr, &[1.0, fx, fy], residual);
+                    cost += residual * residual;
                 }
             }
-            let residual = v - model;
-            jtj.syger(1.0, &j, &j, 1.0);
-            jtr.axpy(residual, &j, 1.0);
-            cost += residual * residual;
         }
-        jtj.fill_upper_triangle_with_lower_triangle();
+        let jtj = SMatrix::<f64, N, N>::from_fn(|a, b| jtj[a.max(b)][a.min(b)]);
+        let jtr = SVector::<f64, N>::from(jtr);
         let solved = jtj.cholesky()?.solve(&jtr);
         let mut step = [0.0; TERMS];
         step[..N].copy_from_slice(solved.as_slice());
         Some((step, cost))
+    }
+}
+
+/// Adds one pixel's Jacobian row `j` (its first `j.len()` terms; the rest are zero) and
+/// `residual` to the normal equations' lower triangle `jtj` and right-hand side `jtr`.
+#[inline(always)]
+fn accumulate<const N: usize>(
+    jtj: &mut [[f64; N]; N],
+    jtr: &mut [f64; N],
+    j: &[f64],
+    residual: f64,
+) {
+    for (a, &ja) in j.iter().enumerate() {
+        jtr[a] += residual * ja;
+        for (b, &jb) in j[..=a].iter().enumerate() {
+            jtj[a][b] += ja * jb;
+        }
     }
 }
