@@ -79,8 +79,9 @@ fn logistic_table() -> &'static [f64] {
 /// flat to 2e-9.
 fn logistic_in(table: &[f64], z: f64) -> f64 {
     let u = (z.clamp(-REACH, REACH) + REACH) * STEPS_PER_UNIT;
-    let i = u as usize;
-    let f = u - i as f64;
+    // `u` is in 0..=2 REACH STEPS_PER_UNIT: through i32, the conversion is one instruction.
+    let k = u as i32;
+    let (i, f) = (k as usize, u - f64::from(k));
     table[i] * (1.0 - f) + table[i + 1] * f
 }
 

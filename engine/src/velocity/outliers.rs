@@ -38,46 +38,12 @@ pub fn neighbour_outliers(
     if k == 0 || vectors.len() <= k {
         return outliers;
     }
-    let mut by_x: Vec<usize> = (0..vectors.len()).collect();
-    by_x.sort_by(|&a, &b| vectors[a].0.x.total_cmp(&vectors[b].0.x).then(a.cmp(&b)));
+    let positions: Vec<Point3<f64>> = vectors.iter().map(|v| v.0).collect();
+    let grid = Grid3::new(&positions);
     let mut nearest: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
     let mut component = vec![0.0; k];
-    for (rank, &i) in by_x.iter().enumerate() {
-        let p = vectors[i].0;
-        nearest.clear();
-        let consider = |j: usize, nearest: &mut Vec<(f64, usize)>| {
-            let d2 = (vectors[j].0 - p).norm_squared();
-            let key = (d2, j);
-            if nearest.len() == k && !lexically_less(key, nearest[k - 1]) {
-                return;
-            }
-            let at = nearest.partition_point(|&e| lexically_less(e, key));
-            nearest.insert(at, key);
-            nearest.truncate(k);
-        };
-        // Walk outwards in x until the x gap alone exceeds the k-th distance found.
-        let (mut left, mut right) = (rank, rank + 1);
-        loop {
-            let bound = if nearest.len() == k {
-                nearest[k - 1].0
-            } else {
-                f64::INFINITY
-            };
-            let gap = |q: usize| (vectors[by_x[q]].0.x - p.x).powi(2);
-            let go_left = left > 0 && gap(left - 1) <= bound;
-            let go_right = right < by_x.len() && gap(right) <= bound;
-            if !go_left && !go_right {
-                break;
-            }
-            if go_left {
-                left -= 1;
-                consider(by_x[left], &mut nearest);
-            }
-            if go_right {
-                consider(by_x[right], &mut nearest);
-                right += 1;
-            }
-        }
+    for (i, &(_, velocity)) in vectors.iter().enumerate() {
+        grid.nearest(&positions, i, k, &mut nearest);
         let mut centre = Vector3::zeros();
         let mut spread = Vector3::zeros();
         for c in 0..3 {
@@ -91,7 +57,6 @@ pub fn neighbour_outliers(
             spread[c] = median(&mut component);
         }
         let speed = centre.norm();
-        let velocity = vectors[i].1;
         let coherent = spread.iter().all(|&s| s < test.coherence * speed);
         outliers[i] = coherent
             && (0..3).any(|c| {
@@ -100,6 +65,132 @@ pub fn neighbour_outliers(
             });
     }
     outliers
+}
+
+/// Points binned in a regular grid of cubes over their bounding box, about one point per
+/// cube, for k-nearest searches that look only at the cubes around a point.
+struct Grid3 {
+    origin: Point3<f64>,
+    cell: f64,
+    dims: [usize; 3],
+    /// Per cube (x fastest), where its points start in `order`; one more entry at the end.
+    start: Vec<usize>,
+    /// Point indices, cube by cube.
+    order: Vec<usize>,
+}
+
+impl Grid3 {
+    fn new(points: &[Point3<f64>]) -> Self {
+        let mut lo = Point3::from([f64::INFINITY; 3]);
+        let mut hi = Point3::from([f64::NEG_INFINITY; 3]);
+        for p in points {
+            lo = lo.inf(p);
+            hi = hi.sup(p);
+        }
+        let extent = hi - lo;
+        let n = points.len().max(1);
+        // The finest cube that gives no more cubes than points (a flat or thin cloud's
+        // thin sides take one cube).
+        let dims_for = |cell: f64| extent.map(|e| ((e / cell) as usize).saturating_add(1));
+        let widest = extent.max().max(f64::MIN_POSITIVE);
+        let mut cell = widest;
+        for m in 2..=n {
+            let finer = widest / m as f64;
+            let d = dims_for(finer);
+            if d.iter()
+                .try_fold(1usize, |a, &b| a.checked_mul(b))
+                .is_none_or(|c| c > n)
+            {
+                break;
+            }
+            cell = finer;
+        }
+        let d = dims_for(cell);
+        let dims = [d.x, d.y, d.z];
+        let cube_of = |p: &Point3<f64>| {
+            let c = |a: usize| (((p[a] - lo[a]) / cell) as usize).min(dims[a] - 1);
+            c(0) + dims[0] * (c(1) + dims[1] * c(2))
+        };
+        let mut start = vec![0; dims.iter().product::<usize>() + 1];
+        for p in points {
+            start[cube_of(p) + 1] += 1;
+        }
+        for c in 1..start.len() {
+            start[c] += start[c - 1];
+        }
+        let mut fill = start.clone();
+        let mut order = vec![0; points.len()];
+        for (i, p) in points.iter().enumerate() {
+            let c = cube_of(p);
+            order[fill[c]] = i;
+            fill[c] += 1;
+        }
+        Self {
+            origin: lo,
+            cell,
+            dims,
+            start,
+            order,
+        }
+    }
+
+    /// The `k` points nearest to point `i` (itself left out) into `nearest`, as (squared
+    /// distance, index), ties broken by index: the cubes around `i`'s in growing shells, until
+    /// no cube further out can hold a point nearer than the k-th found.
+    fn nearest(&self, points: &[Point3<f64>], i: usize, k: usize, nearest: &mut Vec<(f64, usize)>) {
+        nearest.clear();
+        let p = points[i];
+        let home: [usize; 3] = std::array::from_fn(|a| {
+            (((p[a] - self.origin[a]) / self.cell) as usize).min(self.dims[a] - 1)
+        });
+        for r in 0.. {
+            let lo: [usize; 3] = std::array::from_fn(|a| home[a].saturating_sub(r));
+            let hi: [usize; 3] = std::array::from_fn(|a| (home[a] + r).min(self.dims[a] - 1));
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    for x in lo[0]..=hi[0] {
+                        let shell = [x, y, z]
+                            .iter()
+                            .zip(&home)
+                            .any(|(&c, &h)| c.abs_diff(h) == r);
+                        if shell {
+                            let c = x + self.dims[0] * (y + self.dims[1] * z);
+                            for &j in &self.order[self.start[c]..self.start[c + 1]] {
+                                if j != i {
+                                    consider(nearest, k, ((points[j] - p).norm_squared(), j));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            // The nearest a point outside the searched block can be (none beyond the grid).
+            let clear = (0..3)
+                .flat_map(|a| {
+                    let below =
+                        (lo[a] > 0).then(|| p[a] - (self.origin[a] + lo[a] as f64 * self.cell));
+                    let above = (hi[a] + 1 < self.dims[a])
+                        .then(|| self.origin[a] + (hi[a] + 1) as f64 * self.cell - p[a]);
+                    [below, above]
+                })
+                .flatten()
+                .fold(f64::INFINITY, f64::min);
+            let full = nearest.len() == k;
+            if clear == f64::INFINITY || (full && nearest[k - 1].0 < clear * clear) {
+                break;
+            }
+        }
+    }
+}
+
+/// Puts `key` (squared distance, index) among the `k` nearest so far, kept sorted.
+fn consider(nearest: &mut Vec<(f64, usize)>, k: usize, key: (f64, usize)) {
+    if nearest.len() == k && !lexically_less(key, nearest[k - 1]) {
+        return;
+    }
+    let at = nearest.partition_point(|&e| lexically_less(e, key));
+    nearest.insert(at, key);
+    nearest.truncate(k);
 }
 
 fn lexically_less(a: (f64, usize), b: (f64, usize)) -> bool {
@@ -163,6 +254,40 @@ mod tests {
         assert!(neighbour_outliers(&field[15..23], &TEST)
             .iter()
             .all(|&o| !o));
+    }
+
+    #[test]
+    fn the_grid_finds_the_nearest_points_as_a_search_of_all_would() {
+        // A cloud, a flat sheet and a line, with repeated points (ties broken by index).
+        let mut state = 7u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let cloud: Vec<Point3<f64>> = (0..300)
+            .map(|_| Point3::new(next(), 0.2 * next(), 3.0 * next()))
+            .collect();
+        let sheet: Vec<Point3<f64>> = (0..200)
+            .map(|i| Point3::new(next(), next(), 0.0) + Vector3::x() * f64::from(i % 3 == 0))
+            .collect();
+        let line: Vec<Point3<f64>> = (0..50)
+            .map(|i| Point3::new(f64::from(i / 2), 0.0, 0.0))
+            .collect();
+        for points in [cloud, sheet, line] {
+            let grid = Grid3::new(&points);
+            let mut found = Vec::new();
+            for i in 0..points.len() {
+                grid.nearest(&points, i, 8, &mut found);
+                let mut all: Vec<(f64, usize)> = (0..points.len())
+                    .filter(|&j| j != i)
+                    .map(|j| ((points[j] - points[i]).norm_squared(), j))
+                    .collect();
+                all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                assert_eq!(found, all[..8], "point {i}");
+            }
+        }
     }
 
     #[test]
