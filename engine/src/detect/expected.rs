@@ -33,8 +33,8 @@ impl Detector {
     /// detections: [`Separation::Fitted`] where the fit is trustworthy, else
     /// [`Separation::Cut`] (good for keeping the tracks, not for measuring). Regions of more than
     /// four expected particles are left as they are. Where `parting` is given, a region is
-    /// parted by it first ([`Separation::Fitted`] detections at its centres), and fitted as
-    /// spots only where it cannot tell the particles. Called after [`Self::detect`] on the same
+    /// parted by it instead ([`Separation::Fitted`] detections at its centres), and left as
+    /// detected where it cannot tell the particles. Called after [`Self::detect`] on the same
     /// image, with the same `config`, where [`DetectConfig::separate_expected`] asks for it.
     pub fn separate_expected(
         &mut self,
@@ -58,11 +58,15 @@ impl Detector {
             let from = nearest_pixel(image, expected[group[0].1]);
             self.regions.gather_region(image, region.label, from);
             let indices: Vec<usize> = group.iter().map(|&(_, i)| i).collect();
-            let parted = parting.and_then(|part| self.part(image, config, &region, &indices, part));
-            let parts = parted.or_else(|| {
-                let points: Vec<PixelPoint> = indices.iter().map(|&i| expected[i]).collect();
-                self.refit(image, config, &region, &points, only_cut)
-            });
+            // A region the tracks' shapes cannot part stays as detected: the tracks measure
+            // their particles in it among their neighbours.
+            let parts = match parting {
+                Some(part) => self.part(image, config, &region, &indices, part),
+                None => {
+                    let points: Vec<PixelPoint> = indices.iter().map(|&i| expected[i]).collect();
+                    self.refit(image, config, &region, &points, only_cut)
+                }
+            };
             if let Some(parts) = parts {
                 replaced.push((group[0].0, parts));
             }

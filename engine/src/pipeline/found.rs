@@ -313,6 +313,7 @@ fn seen_by(camera: &CameraOutput, detections: &[Detection]) -> Vec<refine::Seen>
                 centroid: d.centroid,
                 diameter_px: d.diameter_px,
                 clear: d.separation == Separation::Clear,
+                fitted: d.separation == Separation::Fitted,
                 rect: feature.feature.rect,
             }
         })

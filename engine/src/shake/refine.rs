@@ -342,6 +342,9 @@ pub(crate) struct Seen {
     pub(crate) diameter_px: f64,
     /// Whether it was told apart from any neighbour without a cut or a fit.
     pub(crate) clear: bool,
+    /// Whether its centre was fitted among its neighbours already (parted with the tracks'
+    /// shapes, or fitted as a spot): it is not fitted again.
+    pub(crate) fitted: bool,
     /// Its centroid, rectified (where neighbours are looked for).
     pub(crate) rect: RectPoint,
 }
@@ -800,6 +803,7 @@ mod tests {
                 centroid: c,
                 diameter_px,
                 clear,
+                fitted: false,
                 rect: RectPoint { x: c.x, y: c.y },
             })
             .collect()
@@ -869,6 +873,7 @@ mod tests {
             centroid: blob,
             diameter_px: 10.0,
             clear: false,
+            fitted: false,
             rect: RectPoint {
                 x: blob.x,
                 y: blob.y,
@@ -1108,6 +1113,7 @@ mod tests {
             centroid: at(30.0, 20.0),
             diameter_px: 40.0,
             clear: true,
+            fitted: false,
             rect: RectPoint { x: 30.0, y: 20.0 },
         };
         assert_eq!(group::guessed(image, &blob, 0.6, 3.0).shape.radius_px, 3.0);

@@ -176,7 +176,8 @@ impl<'a> Group<'a> {
     }
 
     /// Wanted particle `k`'s fit, `None` where it is not fitted (no shape known, or a
-    /// detection standing alone with no hidden particle near). A clear detection that touches
+    /// detection standing alone or fitted already, with no hidden particle near: its centre is
+    /// measured as detected). A clear detection that touches
     /// another (parted from it at a dip between their peaks) is fitted: the neighbour's light
     /// in its region pulls its centroid.
     fn subject(&self, k: usize) -> Option<Subject> {
@@ -195,7 +196,8 @@ impl<'a> Group<'a> {
             }
         };
         let (members, ids, unknown, hidden) = self.neighbours(k, (own, id), c);
-        if alone && hidden.is_empty() {
+        let fitted = w.detection.is_some_and(|i| self.seen[i].fitted);
+        if (alone || fitted) && hidden.is_empty() {
             return None;
         }
         Some(Subject {
