@@ -81,12 +81,12 @@ struct Grid3 {
 
 impl Grid3 {
     fn new(points: &[Point3<f64>]) -> Self {
-        let mut lo = Point3::from([f64::INFINITY; 3]);
-        let mut hi = Point3::from([f64::NEG_INFINITY; 3]);
-        for p in points {
-            lo = lo.inf(p);
-            hi = hi.sup(p);
-        }
+        // The box holds all but the outermost points along each axis (a ghost metres away
+        // would otherwise leave the cloud in one cube); those beyond it go to its edge cubes.
+        let (lo, hi) = (
+            quantiles(points, OUTSIDE_FRACTION),
+            quantiles(points, 1.0 - OUTSIDE_FRACTION),
+        );
         let extent = hi - lo;
         let n = points.len().max(1);
         // The finest cube that gives no more cubes than points (a flat or thin cloud's
@@ -108,7 +108,7 @@ impl Grid3 {
         let d = dims_for(cell);
         let dims = [d.x, d.y, d.z];
         let cube_of = |p: &Point3<f64>| {
-            let c = |a: usize| (((p[a] - lo[a]) / cell) as usize).min(dims[a] - 1);
+            let c = |a: usize| cube_along(p[a] - lo[a], cell, dims[a]);
             c(0) + dims[0] * (c(1) + dims[1] * c(2))
         };
         let mut start = vec![0; dims.iter().product::<usize>() + 1];
@@ -140,9 +140,8 @@ impl Grid3 {
     fn nearest(&self, points: &[Point3<f64>], i: usize, k: usize, nearest: &mut Vec<(f64, usize)>) {
         nearest.clear();
         let p = points[i];
-        let home: [usize; 3] = std::array::from_fn(|a| {
-            (((p[a] - self.origin[a]) / self.cell) as usize).min(self.dims[a] - 1)
-        });
+        let home: [usize; 3] =
+            std::array::from_fn(|a| cube_along(p[a] - self.origin[a], self.cell, self.dims[a]));
         for r in 0.. {
             let lo: [usize; 3] = std::array::from_fn(|a| home[a].saturating_sub(r));
             let hi: [usize; 3] = std::array::from_fn(|a| (home[a] + r).min(self.dims[a] - 1));
@@ -164,7 +163,8 @@ impl Grid3 {
                     }
                 }
             }
-            // The nearest a point outside the searched block can be (none beyond the grid).
+            // The nearest a point outside the searched block can be (none beyond the grid; a
+            // point beyond the box sits in an edge cube, further out than its cube starts).
             let clear = (0..3)
                 .flat_map(|a| {
                     let below =
@@ -181,6 +181,29 @@ impl Grid3 {
             }
         }
     }
+}
+
+/// Points outside the grid's box along each axis, at most, at each end.
+const OUTSIDE_FRACTION: f64 = 0.01;
+
+/// Per axis, the `q` quantile of `points`' coordinates.
+fn quantiles(points: &[Point3<f64>], q: f64) -> Point3<f64> {
+    let mut along: Vec<f64> = Vec::with_capacity(points.len());
+    Point3::from(std::array::from_fn(|a| {
+        along.clear();
+        along.extend(points.iter().map(|p| p[a]));
+        let at = ((along.len().max(1) - 1) as f64 * q).round() as usize;
+        along
+            .select_nth_unstable_by(at, f64::total_cmp)
+            .1
+            .to_owned()
+    }))
+}
+
+/// The cube, of `dims` along an axis of cubes `cell` wide, a coordinate `offset` from the
+/// box's start falls in (those beyond the box in the edge cubes).
+fn cube_along(offset: f64, cell: f64, dims: usize) -> usize {
+    ((offset.max(0.0) / cell) as usize).min(dims - 1)
 }
 
 /// Puts `key` (squared distance, index) among the `k` nearest so far, kept sorted.
@@ -258,7 +281,8 @@ mod tests {
 
     #[test]
     fn the_grid_finds_the_nearest_points_as_a_search_of_all_would() {
-        // A cloud, a flat sheet and a line, with repeated points (ties broken by index).
+        // A cloud, a flat sheet, a line with repeated points (ties broken by index), and a
+        // cloud with points far outside it.
         let mut state = 7u64;
         let mut next = || {
             state = state
@@ -275,7 +299,10 @@ mod tests {
         let line: Vec<Point3<f64>> = (0..50)
             .map(|i| Point3::new(f64::from(i / 2), 0.0, 0.0))
             .collect();
-        for points in [cloud, sheet, line] {
+        // The cloud again with a few points far outside it (ghosts metres away).
+        let mut scattered = cloud.clone();
+        scattered.extend((0..4).map(|i| Point3::new(50.0 * f64::from(i) - 70.0, 3.0, -9.0)));
+        for points in [cloud, sheet, line, scattered] {
             let grid = Grid3::new(&points);
             let mut found = Vec::new();
             for i in 0..points.len() {
