@@ -664,6 +664,57 @@ mod tests {
     }
 
     #[test]
+    fn a_fits_centre_error_is_the_scatter_of_its_centres_under_noise() {
+        // One disc, seen through 300 draws of noise (grey levels, sd 4): the standard error a
+        // converged fit reports is the scatter of the centres it finds.
+        let truth = disc(15.4, 12.7);
+        let clean = draw(30, 25, &[truth]);
+        let mut state = 11u64;
+        let mut noise = || {
+            // Sum of 12 uniforms: near-Gaussian, sd 1.
+            (0..12)
+                .map(|_| {
+                    state = state
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    (state >> 11) as f64 / (1u64 << 53) as f64
+                })
+                .sum::<f64>()
+                - 6.0
+        };
+        let (mut scatter_sq, mut reported) = (0.0, Vec::new());
+        let draws = 300;
+        for _ in 0..draws {
+            let pixels: Vec<u8> = clean
+                .iter()
+                .map(|&v| (f64::from(v) + 4.0 * noise()).round().clamp(0.0, 254.0) as u8)
+                .collect();
+            let image = ImageView::new(30, 25, &pixels).expect("sized");
+            let samples = window(image, &[(truth.at, truth.shape.radius_px + MARGIN_PX)]);
+            let mut fit = step::Fit {
+                member: truth,
+                floor: Floor::under(&samples),
+            };
+            let mut sigma = 0.0;
+            for _ in 0..MAX_ITERATIONS {
+                let stepped = fit
+                    .step(&samples, &[], Free::Radius, truth.shape.radius_px)
+                    .expect("fits");
+                sigma = stepped.centre_sigma_px;
+            }
+            let (dx, dy) = (fit.member.at.x - truth.at.x, fit.member.at.y - truth.at.y);
+            scatter_sq += dx * dx + dy * dy;
+            reported.push(sigma);
+        }
+        let scatter = (scatter_sq / f64::from(draws)).sqrt();
+        let reported = median(&mut reported);
+        assert!(
+            (reported / scatter - 1.0).abs() < 0.2,
+            "reported {reported:.4} px, scatter {scatter:.4} px"
+        );
+    }
+
+    #[test]
     fn the_tabulated_step_is_the_logistic() {
         for i in -2500..=2500 {
             let z = f64::from(i) * 0.0097;

@@ -17,11 +17,13 @@ pub(super) struct Fit {
     pub(super) floor: Floor,
 }
 
-/// What one step did: how far it moved the centre (pixels, along x plus along y), and the
-/// sum of squared residuals the fit had before it.
+/// What one step did: how far it moved the centre (pixels, along x plus along y), the sum of
+/// squared residuals the fit had before it, and the standard error of the centre those
+/// residuals give (pixels, x and y together).
 pub(super) struct Stepped {
     pub(super) moved_px: f64,
     pub(super) cost: f64,
+    pub(super) centre_sigma_px: f64,
 }
 
 impl Fit {
@@ -36,7 +38,7 @@ impl Fit {
         free: Free,
         seed_radius_px: f64,
     ) -> Option<Stepped> {
-        let (step, cost) = match free {
+        let (step, cost, centre_sigma_px) = match free {
             Free::Shape => self.solve::<{ FLOOR_TERMS + 5 }>(samples, others, Free::Shape)?,
             Free::Radius => self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::Radius)?,
         };
@@ -64,6 +66,7 @@ impl Fit {
         Some(Stepped {
             moved_px: step[3].abs() + step[4].abs(),
             cost,
+            centre_sigma_px,
         })
     }
 
@@ -77,7 +80,7 @@ impl Fit {
         samples: &[(f64, f64, f64)],
         others: &[InFit],
         free: Free,
-    ) -> Option<([f64; TERMS], f64)> {
+    ) -> Option<([f64; TERMS], f64, f64)> {
         let table = logistic_table();
         let own = InFit::new(&self.member);
         if samples.len() <= 2 * N {
@@ -115,10 +118,23 @@ impl Fit {
         }
         let jtj = SMatrix::<f64, N, N>::from_fn(|a, b| jtj[a.max(b)][a.min(b)]);
         let jtr = SVector::<f64, N>::from(jtr);
-        let solved = jtj.cholesky()?.solve(&jtr);
+        let factor = jtj.cholesky()?;
+        let solved = factor.solve(&jtr);
         let mut step = [0.0; TERMS];
         step[..N].copy_from_slice(solved.as_slice());
-        Some((step, cost))
+        // The centre's variances are the diagonal of the inverse normal matrix (the squared
+        // norms of the inverse factor's columns) times the residual variance.
+        let l = factor.l();
+        let inverse_diagonal = |k: usize| {
+            let unit = SVector::<f64, N>::from_fn(|r, _| f64::from(u8::from(r == k)));
+            l.solve_lower_triangular(&unit)
+                .map_or(f64::INFINITY, |z| z.norm_squared())
+        };
+        let residual_variance = cost / (samples.len() - N) as f64;
+        let centre_sigma_px = (residual_variance
+            * (inverse_diagonal(FLOOR_TERMS) + inverse_diagonal(FLOOR_TERMS + 1)))
+        .sqrt();
+        Some((step, cost, centre_sigma_px))
     }
 }
 

@@ -15,6 +15,15 @@ use crate::geometry::RectPoint;
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::ImageView;
 
+/// A particle whose step moves its centre (along x plus along y) by less than this fraction
+/// of its centre's standard error (from its fit's own residuals) has settled, and a sweep in
+/// which none moves more ends the sweeps: a smaller step changes no measurement. Sweeps of
+/// touching particles converge slowly (each moves its neighbours' optimum a little), and a
+/// fixed step of a fraction of a pixel spends most of their steps where the noise is larger.
+/// A lone fit, which learns the radius and edge too, runs on to [`CONVERGED_STEP_PX`], as its
+/// centre settles before its shape does.
+const SETTLED_IN_SIGMAS: f64 = 0.25;
+
 /// The particles of one camera's model, by id, as the sweeps leave them.
 #[derive(Default)]
 pub(super) struct Sweep {
@@ -43,7 +52,8 @@ impl Sweep {
     }
 
     /// Every particle fitted in turn until no particle moves by more than
-    /// [`CONVERGED_STEP_PX`] in a sweep, or for as many sweeps as a fit takes steps.
+    /// [`SETTLED_IN_SIGMAS`] of its centre's standard error (nor by more than
+    /// [`CONVERGED_STEP_PX`]) in a sweep, or for as many sweeps as a fit takes steps.
     pub(super) fn run(&mut self, image: ImageView<'_>) {
         self.prepare(|m| window(image, &[(m.at, half_px(m))]));
         self.sweep();
@@ -71,7 +81,7 @@ impl Sweep {
             let mut moved = vec![false; n];
             for i in 0..n {
                 if active[i] && !self.gone[i] && !self.failed[i] {
-                    moved[i] = self.step(i) >= CONVERGED_STEP_PX;
+                    moved[i] = self.step(i);
                 }
             }
             if !moved.iter().any(|&m| m) {
@@ -134,8 +144,9 @@ impl Sweep {
     }
 
     /// One Gauss-Newton step of particle `i`'s fit (its floor, centre, amplitude and radius)
-    /// against its pixels with its neighbours' light taken out; how far it moved, pixels.
-    fn step(&mut self, i: usize) -> f64 {
+    /// against its pixels with its neighbours' light taken out; whether it moved by more than
+    /// it has settled to (see [`SETTLED_IN_SIGMAS`]).
+    fn step(&mut self, i: usize) -> bool {
         let mut others = std::mem::take(&mut self.others);
         others.clear();
         others.extend(self.models(&self.touching[i]));
@@ -150,7 +161,7 @@ impl Sweep {
         self.others = others;
         let Some(stepped) = stepped else {
             self.failed[i] = true;
-            return 0.0;
+            return false;
         };
         if fit.member.left_reach_of(&seed) {
             self.gone[i] = true;
@@ -158,7 +169,8 @@ impl Sweep {
         }
         self.fits[i] = fit;
         self.last_move_px[i] = stepped.moved_px;
-        stepped.moved_px
+        let settled_px = (SETTLED_IN_SIGMAS * stepped.centre_sigma_px).max(CONVERGED_STEP_PX);
+        stepped.moved_px >= settled_px
     }
 
     /// The models of particles `ids` as they stand, but those gone.
