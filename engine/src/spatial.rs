@@ -30,7 +30,7 @@ pub(crate) fn assign(
     mode: Assignment,
 ) -> Vec<(usize, usize)> {
     // Sorting by (cost, row, column) keeps the outcome independent of input order.
-    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
     let mut row_done = vec![false; rows];
     let mut column_done = vec![false; columns];
     let mut pairs = Vec::new();
