@@ -318,13 +318,14 @@ fn window(image: ImageView<'_>, around: &[(PixelPoint, f64)]) -> Vec<(f64, f64, 
         let (d, e) = bounds(c.y, *half, h);
         (x0, x1, y0, y1) = (x0.min(a), x1.max(b), y0.min(d), y1.max(e));
     }
-    let mut samples = Vec::new();
+    let mut samples = Vec::with_capacity(((x1 - x0 + 1) * (y1 - y0 + 1)).max(0) as usize);
     for y in y0..=y1 {
+        let row = &image.pixels[(y * w) as usize..((y + 1) * w) as usize];
         for x in x0..=x1 {
             let near = around.iter().any(|(c, half)| {
                 (x as f64 - c.x).abs() <= *half && (y as f64 - c.y).abs() <= *half
             });
-            let value = image.pixels[(y * w + x) as usize];
+            let value = row[x as usize];
             if near && value < u8::MAX {
                 samples.push((x as f64, y as f64, f64::from(value)));
             }
