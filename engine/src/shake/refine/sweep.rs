@@ -4,8 +4,6 @@
 //! it) however many particles touch in a chain, and every particle is fitted once per sweep,
 //! not once in every group it belongs to.
 
-use std::collections::HashMap;
-
 use super::step::Fit;
 use super::{
     logistic_table, window, Floor, Free, InFit, Member, CONVERGED_STEP_PX, MARGIN_PX,
@@ -27,7 +25,9 @@ const SETTLED_IN_SIGMAS: f64 = 0.25;
 /// The particles of one camera's model, by id, as the sweeps leave them.
 #[derive(Default)]
 pub(super) struct Sweep {
-    index: HashMap<usize, usize>,
+    /// Per id (ids are small: a camera's detections, then its predicted particles), the
+    /// particle's index, [`usize::MAX`] where none was added.
+    index: Vec<usize>,
     seeds: Vec<Member>,
     /// Each particle and the floor under it, as the sweeps have taken them so far.
     fits: Vec<Fit>,
@@ -45,8 +45,11 @@ pub(super) struct Sweep {
 impl Sweep {
     /// Adds particle `id` seeded as `seed` (once; a second add of the same id is ignored).
     pub(super) fn add(&mut self, id: usize, seed: Member) {
-        if let std::collections::hash_map::Entry::Vacant(e) = self.index.entry(id) {
-            e.insert(self.seeds.len());
+        if id >= self.index.len() {
+            self.index.resize(id + 1, usize::MAX);
+        }
+        if self.index[id] == usize::MAX {
+            self.index[id] = self.seeds.len();
             self.seeds.push(seed);
         }
     }
@@ -182,7 +185,7 @@ impl Sweep {
 
     /// Particle `id`'s index, if it was added.
     pub(super) fn element(&self, id: usize) -> Option<usize> {
-        self.index.get(&id).copied()
+        self.index.get(id).copied().filter(|&i| i != usize::MAX)
     }
 
     /// Particle `i` as the sweeps left it (no light where it is gone).
