@@ -64,8 +64,8 @@ impl Camera {
     /// to that track's fit), looking again where the tracks expect particles (the 2D tracks'
     /// expectations and the 3D tracks' predictions, `expected`), and links the rectified
     /// features (detections whose centroid the lens model cannot undistort are left out). With
-    /// tracks first, a region is parted with the tracks' shapes (else fitted as spots). `to_rect` and `from_rect` map this camera's raw
-    /// pixels to the rectified image and back.
+    /// tracks first, a region is parted with the tracks' shapes (without, fitted as spots).
+    /// `to_rect` and `from_rect` map this camera's raw pixels to the rectified image and back.
     pub(super) fn push(
         &mut self,
         image: ImageView<'_>,

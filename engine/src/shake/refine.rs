@@ -1082,64 +1082,57 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn a_region_two_tracks_expect_is_parted_with_their_shapes() {
-        // Two discs 4 px apart in one region, each track predicting its particle most of a
-        // pixel off: the shapes the tracks learnt pin both centres.
-        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
-        let pixels = draw(44, 30, &truth);
+    /// Two discs 4 px apart in one region.
+    fn touching() -> [Member; 2] {
+        [disc(20.3, 15.6), disc(24.4, 16.1)]
+    }
+
+    /// The region of [`touching`] parted by `camera`, each track predicting its particle most
+    /// of a pixel off, with the shape it knows (`shapes`).
+    fn part_touching(camera: &CameraShake, shapes: [Option<Shape>; 2]) -> Option<Vec<PixelPoint>> {
+        let pixels = draw(44, 30, &touching());
         let image = ImageView::new(44, 30, &pixels).expect("sized");
-        let expected = [
-            (at(21.0, 15.0), Some(truth[0].shape)),
-            (at(23.6, 16.8), Some(truth[1].shape)),
-        ];
-        let camera = learnt_camera();
-        let centres = camera
-            .part(image, &all_pixels(image), &expected, 6.0)
-            .expect("parted");
+        let expected = [(at(21.0, 15.0), shapes[0]), (at(23.6, 16.8), shapes[1])];
+        camera.part(image, &all_pixels(image), &expected, 6.0)
+    }
+
+    /// Asserts that `centres` are within 0.05 px of [`touching`]'s discs, one each.
+    fn assert_on_touching(centres: &[PixelPoint]) {
+        let truth = touching();
+        assert_eq!(centres.len(), truth.len());
         for (c, t) in centres.iter().zip(&truth) {
             assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
         }
+    }
+
+    #[test]
+    fn a_region_two_tracks_expect_is_parted_with_their_shapes() {
+        // Each track predicts its particle most of a pixel off: the shapes the tracks learnt
+        // pin both centres.
+        let truth = touching();
+        let known = [Some(truth[0].shape), Some(truth[1].shape)];
+        let camera = learnt_camera();
+        assert_on_touching(&part_touching(&camera, known).expect("parted"));
         // Shapes half the particles' size explain no centres: the region is not parted.
         let mut small = truth[0].shape;
         small.radius_px = 1.5;
-        let shrunk = [(expected[0].0, Some(small)), (expected[1].0, Some(small))];
-        assert_eq!(camera.part(image, &all_pixels(image), &shrunk, 6.0), None);
+        assert_eq!(part_touching(&camera, [Some(small); 2]), None);
         // A camera that has not learnt from lone particles parts nothing.
-        let unlearnt = CameraShake::default();
-        assert_eq!(
-            unlearnt.part(image, &all_pixels(image), &expected, 6.0),
-            None
-        );
+        assert_eq!(part_touching(&CameraShake::default(), known), None);
     }
 
     #[test]
     fn a_particle_no_track_knows_is_parted_with_a_shape_from_its_share_of_the_region() {
         // The second particle has only a 2D track: its shape is guessed from its share of the
         // region's area (6 px across: a radius of 3 px at one learnt radius per half size).
-        let truth = [disc(20.3, 15.6), disc(24.4, 16.1)];
-        let pixels = draw(44, 30, &truth);
-        let image = ImageView::new(44, 30, &pixels).expect("sized");
-        let expected = [
-            (at(21.0, 15.0), Some(truth[0].shape)),
-            (at(23.6, 16.8), None),
-        ];
+        let known = [Some(touching()[0].shape), None];
         let camera = CameraShake {
             radius_per_half_diameter: Some(1.0),
             ..learnt_camera()
         };
-        let centres = camera
-            .part(image, &all_pixels(image), &expected, 6.0)
-            .expect("parted");
-        for (c, t) in centres.iter().zip(&truth) {
-            assert!((c.x - t.at.x).hypot(c.y - t.at.y) < 0.05, "{c:?} vs {t:?}");
-        }
+        assert_on_touching(&part_touching(&camera, known).expect("parted"));
         // Without a learnt radius per size there is no shape to part it with.
-        let unscaled = learnt_camera();
-        assert_eq!(
-            unscaled.part(image, &all_pixels(image), &expected, 6.0),
-            None
-        );
+        assert_eq!(part_touching(&learnt_camera(), known), None);
     }
 
     #[test]

@@ -67,8 +67,9 @@ pub fn neighbour_outliers(
     outliers
 }
 
-/// Points binned in a regular grid of cubes over their bounding box, about one point per
-/// cube, for k-nearest searches that look only at the cubes around a point.
+/// Points binned in a regular grid of cubes over the box holding all but their outermost,
+/// about one point per cube, for k-nearest searches that look only at the cubes around a
+/// point.
 struct Grid3 {
     origin: Point3<f64>,
     cell: f64,

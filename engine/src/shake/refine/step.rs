@@ -96,24 +96,21 @@ impl Fit {
             let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
             let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
             model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            match own.at(table, (x, y)) {
+            let at = own.at(table, (x, y));
+            if let Some(at) = at {
+                model += own.amplitude * at[4];
+            }
+            let residual = v - model;
+            cost += residual * residual;
+            match at {
                 Some(at) => {
-                    model += own.amplitude * at[4];
-                    let values = own.values(at, free);
                     let mut j = [0.0; N];
-                    j[0] = 1.0;
-                    j[1] = fx;
-                    j[2] = fy;
-                    j[FLOOR_TERMS..].copy_from_slice(&values[..N - FLOOR_TERMS]);
-                    let residual = v - model;
+                    j[..FLOOR_TERMS].copy_from_slice(&[1.0, fx, fy]);
+                    j[FLOOR_TERMS..].copy_from_slice(&own.values(at, free)[..N - FLOOR_TERMS]);
                     accumulate(&mut jtj, &mut jtr, &j, residual);
-                    cost += residual * residual;
                 }
-                None => {
-                    let residual = v - model;
-                    accumulate(&mut jtj, &mut jtr, &[1.0, fx, fy], residual);
-                    cost += residual * residual;
-                }
+                // A pixel beyond the particle's reach has only the floor's terms.
+                None => accumulate(&mut jtj, &mut jtr, &[1.0, fx, fy], residual),
             }
         }
         let jtj = SMatrix::<f64, N, N>::from_fn(|a, b| jtj[a.max(b)][a.min(b)]);
