@@ -180,10 +180,7 @@ pub(crate) fn learn_shape(
 /// free) until its centre stops moving: the particle as fitted and the RMS residual the fit
 /// had at its last step; `None` where a step fails or the centre leaves its reach.
 fn fit_alone(samples: &[(f64, f64, f64)], seed: Member) -> Option<(Member, f64)> {
-    let mut fit = step::Fit {
-        member: seed,
-        floor: Floor::under(samples),
-    };
+    let mut fit = step::Fit::new(seed, samples);
     let mut cost = f64::INFINITY;
     for _ in 0..MAX_ITERATIONS {
         let stepped = fit.step(samples, &[], Free::Shape, seed.shape.radius_px)?;
@@ -692,10 +689,7 @@ mod tests {
                 .collect();
             let image = ImageView::new(30, 25, &pixels).expect("sized");
             let samples = window(image, &[(truth.at, truth.shape.radius_px + MARGIN_PX)]);
-            let mut fit = step::Fit {
-                member: truth,
-                floor: Floor::under(&samples),
-            };
+            let mut fit = step::Fit::new(truth, &samples);
             let mut sigma = 0.0;
             for _ in 0..MAX_ITERATIONS {
                 let stepped = fit

@@ -15,6 +15,9 @@ const TERMS: usize = FLOOR_TERMS + 5;
 pub(super) struct Fit {
     pub(super) member: Member,
     pub(super) floor: Floor,
+    /// The floor's block of the normal equations (its terms are the pixels' positions about
+    /// the floor's centre, the same at every step): summed once, in pixel order.
+    floor_block: [[f64; FLOOR_TERMS]; FLOOR_TERMS],
 }
 
 /// What one step did: how far it moved the centre (pixels, along x plus along y), the sum of
@@ -27,6 +30,26 @@ pub(super) struct Stepped {
 }
 
 impl Fit {
+    /// `member` on a flat floor under `samples` (their darkest level), the fit that steps
+    /// against those samples start from.
+    pub(super) fn new(member: Member, samples: &[(f64, f64, f64)]) -> Self {
+        let floor = Floor::under(samples);
+        let mut floor_block = [[0.0; FLOOR_TERMS]; FLOOR_TERMS];
+        for &(x, y, _) in samples {
+            let j = [1.0, x - floor.centre.0, y - floor.centre.1];
+            for (a, &ja) in j.iter().enumerate() {
+                for (b, &jb) in j[..=a].iter().enumerate() {
+                    floor_block[a][b] += ja * jb;
+                }
+            }
+        }
+        Self {
+            member,
+            floor,
+            floor_block,
+        }
+    }
+
     /// One step against `samples` (x, y, grey level) with `others`' light taken out, the
     /// radius and edge free as `free` says (a radius among neighbours kept within
     /// [`RADIUS_RANGE`] of `seed_radius_px`); `None` where the pixels do not pin the unknowns
@@ -87,9 +110,13 @@ impl Fit {
             return None;
         }
         let floor = &self.floor;
-        // The normal equations' lower triangle and right-hand side, summed by hand: the
-        // floor's terms are all a pixel beyond the particle's reach adds to.
+        // The normal equations' lower triangle and right-hand side, summed by hand from the
+        // floor's block (the same at every step); a pixel beyond the particle's reach adds to
+        // the floor's right-hand side only.
         let mut jtj = [[0.0; N]; N];
+        for (row, block) in jtj.iter_mut().zip(&self.floor_block) {
+            row[..FLOOR_TERMS].copy_from_slice(block);
+        }
         let mut jtr = [0.0; N];
         let mut cost = 0.0;
         for &(x, y, v) in samples {
@@ -110,7 +137,11 @@ impl Fit {
                     accumulate(&mut jtj, &mut jtr, &j, residual);
                 }
                 // A pixel beyond the particle's reach has only the floor's terms.
-                None => accumulate(&mut jtj, &mut jtr, &[1.0, fx, fy], residual),
+                None => {
+                    for (r, j) in jtr.iter_mut().zip([1.0, fx, fy]) {
+                        *r += residual * j;
+                    }
+                }
             }
         }
         let jtj = SMatrix::<f64, N, N>::from_fn(|a, b| jtj[a.max(b)][a.min(b)]);
@@ -135,19 +166,21 @@ impl Fit {
     }
 }
 
-/// Adds one pixel's Jacobian row `j` (its first `j.len()` terms; the rest are zero) and
-/// `residual` to the normal equations' lower triangle `jtj` and right-hand side `jtr`.
+/// Adds one pixel's Jacobian row `j` and `residual` to the normal equations' lower triangle
+/// `jtj` (but its floor block, summed once: [`Fit::new`]) and right-hand side `jtr`.
 #[inline(always)]
 fn accumulate<const N: usize>(
     jtj: &mut [[f64; N]; N],
     jtr: &mut [f64; N],
-    j: &[f64],
+    j: &[f64; N],
     residual: f64,
 ) {
     for (a, &ja) in j.iter().enumerate() {
         jtr[a] += residual * ja;
-        for (b, &jb) in j[..=a].iter().enumerate() {
-            jtj[a][b] += ja * jb;
+        if a >= FLOOR_TERMS {
+            for (b, &jb) in j[..=a].iter().enumerate() {
+                jtj[a][b] += ja * jb;
+            }
         }
     }
 }

@@ -6,8 +6,8 @@
 
 use super::step::Fit;
 use super::{
-    logistic_table, window, Floor, Free, InFit, Member, CONVERGED_STEP_PX, MARGIN_PX,
-    MAX_ITERATIONS, SETTLED_STEP_IN_REACHES,
+    logistic_table, window, Free, InFit, Member, CONVERGED_STEP_PX, MARGIN_PX, MAX_ITERATIONS,
+    SETTLED_STEP_IN_REACHES,
 };
 use crate::geometry::RectPoint;
 use crate::spatial::{PointGrid, GRID_CELL_PX};
@@ -109,10 +109,7 @@ impl Sweep {
             .seeds
             .iter()
             .zip(&self.samples)
-            .map(|(&member, s)| Fit {
-                member,
-                floor: Floor::under(s),
-            })
+            .map(|(&member, s)| Fit::new(member, s))
             .collect();
         // The grid takes points of any plane: these are raw pixels.
         let grid = PointGrid::new(
