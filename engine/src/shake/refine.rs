@@ -1099,6 +1099,55 @@ mod tests {
         }
     }
 
+    /// Particle 1 of [`touching`] fitted from most of a pixel off, with particle 0 held at
+    /// `held_at`: where particle 1 ends, and where particle 0 stands after the sweeps.
+    fn fit_beside_held(held_at: PixelPoint) -> (PixelPoint, PixelPoint) {
+        let truth = touching();
+        let pixels = draw(44, 30, &truth);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let mut sweep = sweep::Sweep::default();
+        sweep.hold(
+            0,
+            Member {
+                at: held_at,
+                ..truth[0]
+            },
+        );
+        sweep.add(
+            1,
+            Member {
+                at: at(23.8, 16.7),
+                ..truth[1]
+            },
+        );
+        sweep.run(image);
+        let (held, fitted) = (
+            sweep.element(0).expect("held"),
+            sweep.element(1).expect("added"),
+        );
+        assert!(sweep.fitted(fitted) && sweep.settled(held));
+        (sweep.member(fitted).at, sweep.member(held).at)
+    }
+
+    #[test]
+    fn a_held_particle_lends_its_light_and_stays_where_it_was_put() {
+        let truth = touching();
+        let (fitted, held) = fit_beside_held(truth[0].at);
+        assert_eq!(held, truth[0].at);
+        assert!(
+            (fitted.x - truth[1].at.x).hypot(fitted.y - truth[1].at.y) < 0.05,
+            "{fitted:?}"
+        );
+        // Held a pixel off, its light pulls the other's fit off too: it is not fitted again.
+        let off = at(truth[0].at.x - 1.0, truth[0].at.y);
+        let (fitted, held) = fit_beside_held(off);
+        assert_eq!(held, off);
+        assert!(
+            (fitted.x - truth[1].at.x).hypot(fitted.y - truth[1].at.y) > 0.05,
+            "{fitted:?}"
+        );
+    }
+
     #[test]
     fn a_region_two_tracks_expect_is_parted_with_their_shapes() {
         // Each track predicts its particle most of a pixel off: the shapes the tracks learnt

@@ -114,33 +114,51 @@ impl<'a> Group<'a> {
             (0..self.wanted.len()).map(|k| self.subject(k)).collect();
         let all: Vec<&Subject> = subjects.iter().flatten().collect();
         let mut measured = vec![None; subjects.len()];
-        for (s, m) in all.iter().zip(self.swept(&all, false)) {
-            measured[s.k] = m;
+        let first = self.sweep_of(&all, false, None);
+        for s in &all {
+            measured[s.k] = self.judge_swept(s, &first, false);
         }
         let again: Vec<&Subject> = all
             .into_iter()
             .filter(|s| measured[s.k].is_none() && !s.unknown.is_empty())
             .collect();
-        for (s, m) in again.iter().zip(self.swept(&again, true)) {
-            measured[s.k] = m;
+        let second = self.sweep_of(&again, true, Some(&first));
+        for s in &again {
+            measured[s.k] = self.judge_swept(s, &second, true);
         }
         measured
     }
 
-    /// The verdicts on `subjects` of one sweep of their groups (with the detections no track
-    /// knows where `with_unknown`).
-    fn swept(&self, subjects: &[&Subject], with_unknown: bool) -> Vec<Option<Measured>> {
+    /// One sweep of `subjects`' groups (with the detections no track knows where
+    /// `with_unknown`). Their tracked neighbours that an `earlier` sweep measured (fitted and
+    /// settled) are held where it left them: only the subjects and the detections no track
+    /// knows are fitted again.
+    fn sweep_of(
+        &self,
+        subjects: &[&Subject],
+        with_unknown: bool,
+        earlier: Option<&Sweep>,
+    ) -> Sweep {
+        let mut subject_ids = vec![false; self.seen.len() + self.wanted.len()];
+        for s in subjects {
+            subject_ids[s.ids[0]] = true;
+        }
+        let measured = |id: usize| {
+            let e = earlier.filter(|_| !subject_ids[id])?;
+            let i = e.element(id).filter(|&i| e.fitted(i) && e.settled(i))?;
+            Some(e.member(i))
+        };
         let mut sweep = Sweep::default();
         for s in subjects {
             for (&id, m) in self.group_of(s, with_unknown) {
-                sweep.add(id, *m);
+                match measured(id) {
+                    Some(member) => sweep.hold(id, member),
+                    None => sweep.add(id, *m),
+                }
             }
         }
         sweep.run(self.image);
-        subjects
-            .iter()
-            .map(|s| self.judge_swept(s, &sweep, with_unknown))
-            .collect()
+        sweep
     }
 
     /// A subject's group: its own particle and tracked neighbours, with the detections no

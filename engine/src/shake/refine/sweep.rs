@@ -40,6 +40,9 @@ pub(super) struct Sweep {
     failed: Vec<bool>,
     /// The neighbours' models of the particle a step fits (a buffer kept across steps).
     others: Vec<InFit>,
+    /// Per particle, whether it is held where it was added (its light counts, it is not
+    /// fitted).
+    held: Vec<bool>,
 }
 
 impl Sweep {
@@ -51,6 +54,16 @@ impl Sweep {
         if self.index[id] == usize::MAX {
             self.index[id] = self.seeds.len();
             self.seeds.push(seed);
+            self.held.push(false);
+        }
+    }
+
+    /// Adds particle `id` as [`Self::add`] does, held where it stands: measured already, it
+    /// lends its light to the others' fits and is not fitted again.
+    pub(super) fn hold(&mut self, id: usize, at: Member) {
+        self.add(id, at);
+        if let Some(i) = self.element(id) {
+            self.held[i] = true;
         }
     }
 
@@ -83,7 +96,7 @@ impl Sweep {
         for _ in 0..MAX_ITERATIONS {
             let mut moved = vec![false; n];
             for i in 0..n {
-                if active[i] && !self.gone[i] && !self.failed[i] {
+                if active[i] && !self.held[i] && !self.gone[i] && !self.failed[i] {
                     moved[i] = self.step(i);
                 }
             }
@@ -101,10 +114,20 @@ impl Sweep {
     /// them.
     fn prepare(&mut self, sample: impl Fn(&Member) -> Vec<(f64, f64, f64)>) {
         let n = self.seeds.len();
-        self.last_move_px = vec![f64::INFINITY; n];
+        self.last_move_px = self
+            .held
+            .iter()
+            .map(|&h| if h { 0.0 } else { f64::INFINITY })
+            .collect();
         self.gone = vec![false; n];
         self.failed = vec![false; n];
-        self.samples = self.seeds.iter().map(sample).collect();
+        // A held particle is not fitted: it needs no pixels.
+        self.samples = self
+            .seeds
+            .iter()
+            .zip(&self.held)
+            .map(|(m, &held)| if held { Vec::new() } else { sample(m) })
+            .collect();
         self.fits = self
             .seeds
             .iter()
