@@ -58,12 +58,14 @@ impl Sweep {
         }
     }
 
-    /// Adds particle `id` as [`Self::add`] does, held where it stands: measured already, it
-    /// lends its light to the others' fits and is not fitted again.
+    /// Adds particle `id` as [`Self::add`] does (once), held where it stands: measured
+    /// already, it lends its light to the others' fits and is not fitted again.
     pub(super) fn hold(&mut self, id: usize, at: Member) {
-        self.add(id, at);
-        if let Some(i) = self.element(id) {
-            self.held[i] = true;
+        if self.element(id).is_none() {
+            self.add(id, at);
+            if let Some(held) = self.held.last_mut() {
+                *held = true;
+            }
         }
     }
 
@@ -154,6 +156,10 @@ impl Sweep {
             .iter()
             .enumerate()
             .map(|(i, m)| {
+                // A held particle is never stepped: whose light reaches it does not matter.
+                if self.held[i] {
+                    return Vec::new();
+                }
                 let half = half_px(m);
                 grid.near(m.at.x, m.at.y, (half + farthest) * std::f64::consts::SQRT_2)
                     .filter(|&&(p, j)| {
