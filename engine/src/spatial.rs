@@ -194,7 +194,13 @@ impl PointGrid {
         k: usize,
         skip: usize,
     ) -> Vec<(RectPoint, usize)> {
-        let mut half = self.cell_px;
+        // Start at a radius that holds about twice `k` points at the grid's mean density: a
+        // sparse grid would otherwise be scanned again at every radius up to the one it needs.
+        let area = (self.columns * self.rows) as f64 * self.cell_px * self.cell_px;
+        let expected = (2.0 * k as f64 * area
+            / (std::f64::consts::PI * self.points.len().max(1) as f64))
+            .sqrt();
+        let mut half = self.cell_px.max(expected);
         loop {
             // By squared distance: the same order, without a square root per point.
             let mut found: Vec<(f64, (RectPoint, usize))> = self
@@ -205,8 +211,16 @@ impl PointGrid {
                 .collect();
             let everything = half > self.cell_px * (self.columns + self.rows) as f64;
             if found.len() >= k || everything {
-                found.sort_by(|a, b| a.0.total_cmp(&b.0));
-                return found.into_iter().take(k).map(|(_, p)| p).collect();
+                // Nearest first, ties by index: only the k nearest need an order.
+                let order = |a: &(f64, (RectPoint, usize)), b: &(f64, (RectPoint, usize))| {
+                    a.0.total_cmp(&b.0).then(a.1 .1.cmp(&b.1 .1))
+                };
+                if found.len() > k {
+                    found.select_nth_unstable_by(k, order);
+                    found.truncate(k);
+                }
+                found.sort_unstable_by(order);
+                return found.into_iter().map(|(_, p)| p).collect();
             }
             half *= 2.0;
         }

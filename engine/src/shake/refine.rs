@@ -97,8 +97,17 @@ impl Member {
     /// Whether a fit has pushed this particle further from its `seed` than the seed's image
     /// reaches: there is no light of it there, it is gone.
     fn left_reach_of(&self, seed: &Member) -> bool {
-        (self.at.x - seed.at.x).hypot(self.at.y - seed.at.y) > seed.shape.reach_px() + MARGIN_PX
+        farther_than(
+            (self.at.x - seed.at.x, self.at.y - seed.at.y),
+            seed.shape.reach_px() + MARGIN_PX,
+        )
     }
+}
+
+/// Whether the offset `(dx, dy)` is longer than `distance` (non-negative), without the square
+/// root: the fits ask it per particle and step.
+fn farther_than((dx, dy): (f64, f64), distance: f64) -> bool {
+    dx * dx + dy * dy > distance * distance
 }
 
 /// The outcome of a fit: the members as fitted, the RMS residual (grey levels), and whether
@@ -413,8 +422,10 @@ impl Neighbourhood {
         seen[i].clear
             && self.grid.near(c.x, c.y, d + self.widest).all(|&(p, j)| {
                 j == i
-                    || (p.x - c.x).hypot(p.y - c.y)
-                        > 0.5 * (d + seen[j].diameter_px) + 2.0 * MARGIN_PX
+                    || farther_than(
+                        (p.x - c.x, p.y - c.y),
+                        0.5 * (d + seen[j].diameter_px) + 2.0 * MARGIN_PX,
+                    )
             })
     }
 }

@@ -4,7 +4,8 @@
 
 use super::sweep::Sweep;
 use super::{
-    best_known, stayed, Fitted, Measured, Member, Neighbourhood, Seen, Shape, Wanted, MARGIN_PX,
+    best_known, farther_than, stayed, Fitted, Measured, Member, Neighbourhood, Seen, Shape, Wanted,
+    MARGIN_PX,
 };
 use crate::geometry::{PixelPoint, RectPoint};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
@@ -286,7 +287,7 @@ impl<'a> Group<'a> {
         let reach = (own.shape.radius_px + MARGIN_PX) * std::f64::consts::SQRT_2;
         let own_detection = self.wanted[k].detection;
         let touches = |p: RectPoint, other: &Member| {
-            (p.x - c.x).hypot(p.y - c.y) <= reach + other.shape.reach_px()
+            !farther_than((p.x - c.x, p.y - c.y), reach + other.shape.reach_px())
         };
         let (mut tracked, mut ids, mut unknown) = (vec![own], vec![id], Vec::new());
         for &(p, j) in self.near.grid.near(c.x, c.y, reach + self.near.widest) {
