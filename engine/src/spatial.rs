@@ -203,12 +203,13 @@ impl PointGrid {
         let mut half = self.cell_px.max(expected);
         loop {
             // By squared distance: the same order, without a square root per point.
-            let mut found: Vec<(f64, (RectPoint, usize))> = self
-                .near(x, y, half)
-                .filter(|(_, i)| *i != skip)
-                .map(|&(p, i)| ((p.x - x).powi(2) + (p.y - y).powi(2), (p, i)))
-                .filter(|(d_sq, _)| *d_sq <= half * half)
-                .collect();
+            let mut found: Vec<(f64, (RectPoint, usize))> = Vec::with_capacity(4 * k);
+            for &(p, i) in self.near(x, y, half) {
+                let d_sq = (p.x - x).powi(2) + (p.y - y).powi(2);
+                if i != skip && d_sq <= half * half {
+                    found.push((d_sq, (p, i)));
+                }
+            }
             let everything = half > self.cell_px * (self.columns + self.rows) as f64;
             if found.len() >= k || everything {
                 // Nearest first, ties by index: only the k nearest need an order.

@@ -15,6 +15,7 @@
 //! time settles, in 3D, where the chain would link it per camera.
 
 use nalgebra::{Isometry3, Point3};
+use rayon::prelude::*;
 
 use crate::geometry::{RectPoint, Rectification};
 use crate::spatial::median;
@@ -136,39 +137,24 @@ pub(crate) fn predict<'a>(
     let recent: Vec<(u64, &mut Track3d)> = tracks
         .filter(|(_, t)| seq - t.last_seq() <= max_gap_frames + 1)
         .collect();
-    let neighbours = Neighbours::of(recent.iter().map(|(_, t)| &**t), MIN_SAMPLES);
-    let mut predicted: Vec<(Prediction, Option<f64>)> = Vec::new();
-    for (i, (key, track)) in recent.into_iter().enumerate() {
-        let n = track.samples.len();
-        let trusted = n >= MIN_SAMPLES || (n >= YOUNG_SAMPLES && neighbours.vouch_for(track, i));
-        let carried = (!trusted && n < YOUNG_SAMPLES)
-            .then(|| neighbours.carry(track, i, t_s))
-            .flatten();
-        if !trusted && carried.is_none() {
-            continue;
-        }
-        let models = match carried {
-            Some(p) => [Some(p), None],
-            None => model_predictions(track, t_s),
-        };
-        // A carried prediction is the neighbours' flow, not either model's: only its miss in
-        // the images is the track's (it sets the next gate).
-        let scored = if carried.is_some() { [None; 2] } else { models };
-        track.predictor.pending = Some((seq, scored));
-        let Some(point_in_world) = models[track.predictor.followed()].or(models[LINE]) else {
-            continue;
-        };
-        let Some((left, right)) = rect.project(&(rig_from_world * point_in_world)) else {
-            continue;
-        };
-        let prediction = Prediction {
-            key,
-            left,
-            right,
-            gate_px: 0.0,
-        };
-        predicted.push((prediction, track.predictor.sigma_px()));
-    }
+    let views: Vec<&Track3d> = recent.iter().map(|(_, t)| &**t).collect();
+    let neighbours = Neighbours::of(&views, MIN_SAMPLES);
+    // Each track predicts on its own: both cores, in the tracks' order.
+    let predicted: Vec<(Prediction, Option<f64>)> = recent
+        .into_par_iter()
+        .enumerate()
+        .filter_map(|(i, (key, track))| {
+            let p = predict_one(track, i, &neighbours, (seq, t_s))?;
+            let (left, right) = rect.project(&(rig_from_world * p))?;
+            let prediction = Prediction {
+                key,
+                left,
+                right,
+                gate_px: 0.0,
+            };
+            Some((prediction, track.predictor.sigma_px()))
+        })
+        .collect();
     let mut own: Vec<f64> = predicted.iter().filter_map(|(_, s)| *s).collect();
     let scene_sigma_px = if own.is_empty() {
         image_radius_px
@@ -186,6 +172,35 @@ pub(crate) fn predict<'a>(
             }
         })
         .collect()
+}
+
+/// Where a track (the `own`-th the `neighbours` were built from) puts its particle at
+/// frame `seq`, time `t_s`, in the world, if it predicts at all: trusted on its own samples
+/// or vouched for by its neighbours, or carried by their flow; the predictions it makes are
+/// kept to be scored when it is found.
+fn predict_one(
+    track: &mut Track3d,
+    own: usize,
+    neighbours: &Neighbours,
+    (seq, t_s): (u64, f64),
+) -> Option<Point3<f64>> {
+    let n = track.samples.len();
+    let trusted = n >= MIN_SAMPLES || (n >= YOUNG_SAMPLES && neighbours.vouch_for(track, own));
+    let carried = (!trusted && n < YOUNG_SAMPLES)
+        .then(|| neighbours.carry(track, own, t_s))
+        .flatten();
+    if !trusted && carried.is_none() {
+        return None;
+    }
+    let models = match carried {
+        Some(p) => [Some(p), None],
+        None => model_predictions(track, t_s),
+    };
+    // A carried prediction is the neighbours' flow, not either model's: only its miss in the
+    // images is the track's (it sets the next gate).
+    let scored = if carried.is_some() { [None; 2] } else { models };
+    track.predictor.pending = Some((seq, scored));
+    models[track.predictor.followed()].or(models[LINE])
 }
 
 /// Where the line and the quadratic put the track's particle at `t_s`.

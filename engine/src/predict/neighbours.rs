@@ -10,6 +10,7 @@
 //! so a track's disagreement is measured in those units, along and across its line of sight.
 
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 
 use crate::geometry::RectPoint;
 use crate::spatial::{median, PointGrid, GRID_CELL_PX};
@@ -39,19 +40,25 @@ pub(super) struct Neighbours {
 
 impl Neighbours {
     /// The motion of those of `tracks` with at least `mature` samples, indexed by their order.
-    pub(super) fn of<'a>(tracks: impl Iterator<Item = &'a Track3d>, mature: usize) -> Self {
+    pub(super) fn of(tracks: &[&Track3d], mature: usize) -> Self {
+        // Each track's motion and stray on its own: both cores, in the tracks' order.
+        let motions: Vec<_> = tracks
+            .par_iter()
+            .map(|track| {
+                (track.samples.len() >= mature)
+                    .then(|| {
+                        let v = velocity(track, LINE_SAMPLES)?;
+                        let v_young = velocity(track, YOUNG_SAMPLES)?;
+                        Some((track.samples.back()?, v, v_young))
+                    })
+                    .flatten()
+            })
+            .collect();
         let mut seen: Vec<(usize, &Sample, Vector3<f64>)> = Vec::new();
-        let mut velocities = Vec::new();
-        let mut depths = Vec::new();
-        for (i, track) in tracks.enumerate() {
+        let mut velocities = Vec::with_capacity(motions.len());
+        let mut depths = Vec::with_capacity(motions.len());
+        for (i, motion) in motions.into_iter().enumerate() {
             // Indexed by the tracks' order; only the mature ones are ever looked up.
-            let motion = (track.samples.len() >= mature)
-                .then(|| {
-                    let v = velocity(track, LINE_SAMPLES)?;
-                    let v_young = velocity(track, YOUNG_SAMPLES)?;
-                    Some((track.samples.back()?, v, v_young))
-                })
-                .flatten();
             velocities.push(motion.map_or_else(Vector3::zeros, |(_, v, _)| v));
             depths.push(motion.map_or(0.0, |(s, _, _)| s.depth_m));
             if let Some((last, _, v_young)) = motion {
@@ -65,7 +72,7 @@ impl Neighbours {
             scatter: None,
         };
         let strays: Vec<[f64; 2]> = seen
-            .iter()
+            .par_iter()
             .filter_map(|&(i, last, v)| {
                 Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?))
             })
@@ -210,7 +217,7 @@ mod tests {
         tracks.push(track(at, Vector3::x() * 0.1, 3, 1e-5));
         // A ghost at the wrong depth: its image moves with the flow, but not its 3D motion.
         tracks.push(track(at, Vector3::new(0.07, 0.0, -0.02), 3, 1e-5));
-        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
         let n = tracks.len();
         assert!(neighbours.vouch_for(&tracks[n - 2], n - 2));
         assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
@@ -229,7 +236,7 @@ mod tests {
         let mut behind = track(Point3::new(0.02, 0.02, 1.0), Vector3::zeros(), 1, 0.0);
         behind.samples[0].left_rect = tracks[tracks.len() - 1].samples[0].left_rect;
         tracks.push(behind);
-        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
         let n = tracks.len();
         let carried = neighbours
             .carry(&tracks[n - 2], n - 2, 0.3)
@@ -251,7 +258,7 @@ mod tests {
             3,
             1e-5,
         ));
-        let neighbours = Neighbours::of(tracks.iter(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
         let n = tracks.len();
         assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
         assert!(neighbours.carry(&tracks[n - 1], n - 1, 0.4).is_none());
