@@ -1141,6 +1141,39 @@ mod tests {
     }
 
     #[test]
+    fn a_held_particle_without_light_touches_nothing_however_far_it_was_thrown() {
+        // One an earlier sweep pushed off is held dark wherever its last step threw it.
+        let truth = touching();
+        let pixels = draw(44, 30, &truth[1..]);
+        let image = ImageView::new(44, 30, &pixels).expect("sized");
+        let mut sweep = sweep::Sweep::default();
+        let dark = Shape {
+            amplitude: 0.0,
+            ..truth[0].shape
+        };
+        sweep.hold(
+            0,
+            Member {
+                at: at(1e12, -1e12),
+                shape: dark,
+            },
+        );
+        sweep.add(
+            1,
+            Member {
+                at: at(23.8, 16.7),
+                ..truth[1]
+            },
+        );
+        sweep.run(image);
+        let fitted = sweep.member(sweep.element(1).expect("added")).at;
+        assert!(
+            (fitted.x - truth[1].at.x).hypot(fitted.y - truth[1].at.y) < 0.05,
+            "{fitted:?}"
+        );
+    }
+
+    #[test]
     fn a_held_particle_lends_its_light_and_stays_where_it_was_put() {
         let truth = touching();
         let (fitted, held) = fit_beside_held(truth[0].at);

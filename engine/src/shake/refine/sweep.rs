@@ -136,17 +136,23 @@ impl Sweep {
             .zip(&self.samples)
             .map(|(&member, s)| Fit::new(member, s))
             .collect();
-        // The grid takes points of any plane: these are raw pixels.
+        // The grid takes points of any plane: these are raw pixels. A held particle without
+        // light (one an earlier sweep pushed off, held wherever that step threw it) touches
+        // nothing.
         let grid = PointGrid::new(
-            self.seeds.iter().enumerate().map(|(i, m)| {
-                (
-                    RectPoint {
-                        x: m.at.x,
-                        y: m.at.y,
-                    },
-                    i,
-                )
-            }),
+            self.seeds
+                .iter()
+                .enumerate()
+                .filter(|(i, m)| !self.held[*i] || m.shape.amplitude != 0.0)
+                .map(|(i, m)| {
+                    (
+                        RectPoint {
+                            x: m.at.x,
+                            y: m.at.y,
+                        },
+                        i,
+                    )
+                }),
             GRID_CELL_PX,
         );
         let light_reach = |m: &Member| m.shape.reach_px() + MARGIN_PX;
