@@ -132,8 +132,9 @@ impl<'a> Group<'a> {
 
     /// One sweep of `subjects`' groups (with the detections no track knows where
     /// `with_unknown`). Their tracked neighbours that an `earlier` sweep measured (fitted and
-    /// settled) are held where it left them: only the subjects and the detections no track
-    /// knows are fitted again.
+    /// settled), or whose detections were fitted already, are held where those fits left
+    /// them: only the subjects, their other tracked neighbours and the detections no track
+    /// knows are fitted.
     fn sweep_of(
         &self,
         subjects: &[&Subject],
@@ -144,6 +145,16 @@ impl<'a> Group<'a> {
         for s in subjects {
             subject_ids[s.ids[0]] = true;
         }
+        // A tracked particle whose detection was fitted already (parted with the tracks'
+        // shapes) is measured where that fit put it.
+        let parted = |id: usize, m: &Member| {
+            let fitted =
+                id < self.seen.len() && self.seen[id].fitted && self.members.claimed[id].is_some();
+            (fitted && !subject_ids[id]).then(|| Member {
+                at: self.seen[id].centroid,
+                ..*m
+            })
+        };
         let measured = |id: usize| {
             let e = earlier.filter(|_| !subject_ids[id])?;
             let i = e.element(id).filter(|&i| e.fitted(i) && e.settled(i))?;
@@ -152,7 +163,7 @@ impl<'a> Group<'a> {
         let mut sweep = Sweep::default();
         for s in subjects {
             for (&id, m) in self.group_of(s, with_unknown) {
-                match measured(id) {
+                match measured(id).or_else(|| parted(id, m)) {
                     Some(member) => sweep.hold(id, member),
                     None => sweep.add(id, *m),
                 }
