@@ -201,9 +201,10 @@ impl PointGrid {
             / (std::f64::consts::PI * self.points.len().max(1) as f64))
             .sqrt();
         let mut half = self.cell_px.max(expected);
+        let mut found: Vec<(f64, (RectPoint, usize))> = Vec::with_capacity(4 * k);
         loop {
             // By squared distance: the same order, without a square root per point.
-            let mut found: Vec<(f64, (RectPoint, usize))> = Vec::with_capacity(4 * k);
+            found.clear();
             for &(p, i) in self.near(x, y, half) {
                 let d_sq = (p.x - x).powi(2) + (p.y - y).powi(2);
                 if i != skip && d_sq <= half * half {
