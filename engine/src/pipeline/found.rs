@@ -13,6 +13,7 @@ use crate::geometry::{RectPoint, Rectification};
 use crate::predict::Prediction;
 use crate::shake::refine::{self, CameraShake, Measured, Shape};
 use crate::shake::Shaken;
+use crate::tracks::FoundSample;
 use crate::{ImageView, StereoFrame};
 
 /// A prediction and the feature it claimed in each image (left, right), if any.
@@ -64,7 +65,17 @@ impl Pipeline {
                     + distance_sq(spots[1].rect, p.right))
                 .sqrt();
                 let (sample, point) = self.sample_at(frame, seq, spots)?;
-                Some((p.key, sample, miss_px, point))
+                let camera_tracks = match features {
+                    [Some(l), Some(r)] => Some((left.linked[l].track_id, right.linked[r].track_id)),
+                    _ => None,
+                };
+                Some(FoundSample {
+                    key: p.key,
+                    sample,
+                    miss_px,
+                    point,
+                    camera_tracks,
+                })
             })
             .collect();
         out.stats.predicted = predictions.len();
@@ -78,7 +89,7 @@ impl Pipeline {
     }
 
     /// Where a looked-for particle is seen in each image: at its claimed feature as detected,
-    /// or at its refitted centre (then [`Separation::Fitted`]); `None` where it is missing.
+    /// or at its refitted centre (see [`refitted_separation`]); `None` where it is missing.
     fn spots(
         &self,
         left: &CameraOutput,
@@ -96,7 +107,7 @@ impl Pipeline {
                 Measured::Refitted(at) => Some(Spot {
                     rect: self.rectification.pixel_to_rect(c, at)?,
                     px: detection.map_or(at, |d| d.centroid),
-                    separation: Separation::Fitted,
+                    separation: refitted_separation(detection),
                 }),
                 Measured::AsDetected => Some(camera.spot(features[c]?, detections)),
                 Measured::Missing => None,
@@ -227,6 +238,17 @@ impl Pipeline {
         for ((k, _), s) in young.iter().zip(shapes) {
             self.tracks.set_shapes(*k, s);
         }
+    }
+}
+
+/// How a particle refitted among its neighbours was told apart: a clear detection stays clear
+/// (the fit only took its neighbours' light out of its own pixels; which particle it is was
+/// never in doubt, and the velocity fits may narrow their windows on it as on any clear
+/// sample); any other, or one without a detection, was [`Separation::Fitted`].
+fn refitted_separation(detection: Option<&Detection>) -> Separation {
+    match detection {
+        Some(d) if d.separation == Separation::Clear => Separation::Clear,
+        _ => Separation::Fitted,
     }
 }
 

@@ -64,8 +64,10 @@ impl Predictor {
     }
 
     /// Scores this frame's predictions against where the particle was found: `sample`, at
-    /// `miss_px` rectified pixels (both cameras together) from the followed prediction.
-    pub(crate) fn score(&mut self, sample: &Sample, miss_px: f64) {
+    /// `miss_px` rectified pixels (both cameras together) from the followed prediction where
+    /// the prediction found it (none where the per-camera chain did: only the models' misses
+    /// in the world are scored then).
+    pub(crate) fn score(&mut self, sample: &Sample, miss_px: Option<f64>) {
         let Some((seq, predicted)) = self.pending.take() else {
             return;
         };
@@ -78,7 +80,9 @@ impl Predictor {
                 self.miss_sq_m[model] = Some(running_mean(self.miss_sq_m[model], miss));
             }
         }
-        self.miss_sq_px = Some(running_mean(self.miss_sq_px, miss_px * miss_px));
+        if let Some(miss_px) = miss_px {
+            self.miss_sq_px = Some(running_mean(self.miss_sq_px, miss_px * miss_px));
+        }
     }
 
     /// The model to follow: the quadratic once it has missed less than the line.
@@ -279,7 +283,7 @@ mod tests {
                 point_in_world: path(at),
                 ..t.samples[0].clone()
             };
-            t.predictor.score(&sample, 0.5);
+            t.predictor.score(&sample, Some(0.5));
             t.samples.push_back(sample);
         }
         assert_eq!(t.predictor.followed(), QUADRATIC);
@@ -287,6 +291,29 @@ mod tests {
         let miss = (models[QUADRATIC].expect("fitted") - path(1.5)).norm();
         assert!(miss < 1e-9, "a quadratic path is predicted exactly: {miss}");
         assert!((t.predictor.sigma_px().expect("scored") - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn particles_the_chain_finds_teach_the_model_but_not_the_gate() {
+        let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
+        let mut t = track(path, MIN_SAMPLES as u64);
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let pose = Isometry3::identity();
+        for seq in MIN_SAMPLES as u64 + 1..MIN_SAMPLES as u64 + 4 {
+            let at = seq as f64 * 0.1;
+            predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
+            let sample = Sample {
+                seq,
+                t_s: at,
+                point_in_world: path(at),
+                ..t.samples[0].clone()
+            };
+            t.predictor.score(&sample, None);
+            t.samples.push_back(sample);
+        }
+        assert_eq!(t.predictor.followed(), QUADRATIC);
+        assert_eq!(t.predictor.sigma_px(), None);
     }
 
     #[test]

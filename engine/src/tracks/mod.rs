@@ -155,8 +155,23 @@ pub(crate) struct Pair {
     pub(crate) point: MatchedPoint,
 }
 
-/// The keys of tracks continued by their own predictions: apart from every camera track id.
+/// The keys of tracks continued by their own predictions where no camera track carries them
+/// (found in one image only, or their left camera track leads another 3D track): apart from
+/// every camera track id.
 const FOUND_KEYS: u64 = 1 << 63;
+
+/// A track's particle as its prediction found it this frame.
+pub(crate) struct FoundSample {
+    /// The track's key among the live tracks.
+    pub(crate) key: u64,
+    pub(crate) sample: Sample,
+    /// How far from the prediction it was found, rectified pixels (both cameras together).
+    pub(crate) miss_px: f64,
+    pub(crate) point: MatchedPoint,
+    /// The camera tracks (left, right) of the detections it was found at, where both images
+    /// showed it.
+    pub(crate) camera_tracks: Option<(u64, u64)>,
+}
 
 /// Where a 3D track without a pair this frame came from, so it can go back if no new pair
 /// rejoins it.
@@ -275,21 +290,29 @@ impl Tracks {
         self.limits.max_gap_frames
     }
 
-    /// Continues the tracks (by key) whose particles their predictions found this frame, each
-    /// with its sample, the distance it was found from the prediction and its point (appended
-    /// to `points`, or to `partial_points` where one image hid the particle). They leave the
-    /// per-camera chain's keys for their own, so no stereo pair of this frame continues them a
-    /// second time.
+    /// Continues the tracks whose particles their predictions found this frame (each point
+    /// appended to `points`, or to `partial_points` where one image hid the particle). A track
+    /// found in both images goes on under the camera tracks of the detections it was found at,
+    /// as a stereo pair of them would: where its next prediction misses a particle the
+    /// per-camera chain still links, the chain's pair continues it. No pair of this frame can
+    /// continue it a second time: its detections were claimed.
     pub(crate) fn take_found(
         &mut self,
-        found: Vec<(u64, Sample, f64, MatchedPoint)>,
+        found: Vec<FoundSample>,
         (points, partial_points): (&mut Vec<MatchedPoint>, &mut Vec<MatchedPoint>),
     ) {
-        for (key, sample, miss_px, point) in found {
+        for FoundSample {
+            key,
+            sample,
+            miss_px,
+            point,
+            camera_tracks,
+        } in found
+        {
             let Some(mut track) = self.live.remove(&key) else {
                 continue;
             };
-            track.predictor.score(&sample, miss_px);
+            track.predictor.score(&sample, Some(miss_px));
             // A particle hidden in one image was not matched: it is no stereo point.
             let to = if sample.separation == Separation::Hidden {
                 &mut *partial_points
@@ -301,7 +324,14 @@ impl Tracks {
                 ..point
             });
             push_sample(&mut track, sample, self.limits.history_frames);
-            self.live.insert(FOUND_KEYS | track.id, track);
+            let key = match camera_tracks {
+                Some((l, r)) if !self.live.contains_key(&l) => {
+                    track.right_track = r;
+                    l
+                }
+                _ => FOUND_KEYS | track.id,
+            };
+            self.live.insert(key, track);
         }
     }
 
@@ -366,6 +396,10 @@ impl Tracks {
         continued: &mut BTreeMap<u64, Track3d>,
     ) {
         track.right_track = pair.right_track;
+        // A particle the chain found where the track's prediction missed it teaches the
+        // predictor too: scored only on what its prediction found, a track on a turning path
+        // would never learn that its quadratic follows it better than its line.
+        track.predictor.score(&pair.sample, None);
         points.push(MatchedPoint {
             track_id: track.id,
             ..pair.point
@@ -456,5 +490,73 @@ fn push_sample(track: &mut Track3d, sample: Sample, history: u64) {
     track.samples.push_back(sample);
     while track.samples.front().is_some_and(|s| s.seq < oldest) {
         track.samples.pop_front();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{Scenario, ScenarioSpec};
+
+    fn sample(seq: u64) -> Sample {
+        Sample {
+            seq,
+            frame_index: seq,
+            t_s: seq as f64 / 30.0,
+            point_in_world: Point3::new(0.001 * seq as f64, 0.0, 0.5),
+            depth_m: 0.5,
+            separation: Separation::Clear,
+            left_rect: RectPoint::default(),
+            camera_in_world: Point3::origin(),
+            seen_from: None,
+        }
+    }
+
+    fn point() -> MatchedPoint {
+        MatchedPoint {
+            track_id: 0,
+            point_in_world: Point3::origin(),
+            left_px: Default::default(),
+            right_px: Default::default(),
+            depth_m: 0.5,
+        }
+    }
+
+    fn pair(left_track: u64, right_track: u64, seq: u64) -> Pair {
+        Pair {
+            left_track,
+            right_track,
+            sample: sample(seq),
+            point: point(),
+        }
+    }
+
+    /// A track its prediction found in both images goes on under the camera tracks of the
+    /// detections it was found at: the next frame's pair of those camera tracks continues it.
+    #[test]
+    fn a_track_found_by_its_prediction_is_continued_by_its_detections_camera_tracks() {
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let mut tracks = Tracks::new(&PipelineConfig::default());
+        let mut points = Vec::new();
+        tracks.update(1, sample(1).t_s, vec![pair(3, 4, 1)], &rect, &mut points);
+        let (key, id) = {
+            let (key, track) = tracks.live_mut().next().expect("a track");
+            (key, track.id)
+        };
+        let found = FoundSample {
+            key,
+            sample: sample(2),
+            miss_px: 0.3,
+            point: point(),
+            camera_tracks: Some((5, 6)),
+        };
+        tracks.take_found(vec![found], (&mut points, &mut Vec::new()));
+        tracks.update(3, sample(3).t_s, vec![pair(5, 6, 3)], &rect, &mut points);
+        let live: Vec<(u64, u64, usize)> = tracks
+            .live_mut()
+            .map(|(k, t)| (k, t.id, t.samples.len()))
+            .collect();
+        assert_eq!(live, vec![(5, id, 3)]);
     }
 }
