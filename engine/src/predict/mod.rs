@@ -266,8 +266,10 @@ mod tests {
         assert!((back.point_in_rig - point).norm() < 1e-12, "{back:?}");
     }
 
-    #[test]
-    fn a_curved_path_is_followed_by_the_quadratic_once_it_has_missed_less() {
+    /// A track on a quadratic path, predicted for three more frames and scored each time
+    /// against where its particle was, at `miss_px` from the prediction in the images (none:
+    /// found by the chain).
+    fn followed_on_a_curve(miss_px: Option<f64>) -> (Track3d, impl Fn(f64) -> Point3<f64>) {
         let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
         let mut t = track(path, MIN_SAMPLES as u64);
         let rig = ScenarioSpec::new(Scenario::Flume).rig;
@@ -283,9 +285,15 @@ mod tests {
                 point_in_world: path(at),
                 ..t.samples[0].clone()
             };
-            t.predictor.score(&sample, Some(0.5));
+            t.predictor.score(&sample, miss_px);
             t.samples.push_back(sample);
         }
+        (t, path)
+    }
+
+    #[test]
+    fn a_curved_path_is_followed_by_the_quadratic_once_it_has_missed_less() {
+        let (t, path) = followed_on_a_curve(Some(0.5));
         assert_eq!(t.predictor.followed(), QUADRATIC);
         let models = model_predictions(&t, 1.5);
         let miss = (models[QUADRATIC].expect("fitted") - path(1.5)).norm();
@@ -295,23 +303,7 @@ mod tests {
 
     #[test]
     fn particles_the_chain_finds_teach_the_model_but_not_the_gate() {
-        let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
-        let mut t = track(path, MIN_SAMPLES as u64);
-        let rig = ScenarioSpec::new(Scenario::Flume).rig;
-        let rect = Rectification::new(&rig).expect("rectifies");
-        let pose = Isometry3::identity();
-        for seq in MIN_SAMPLES as u64 + 1..MIN_SAMPLES as u64 + 4 {
-            let at = seq as f64 * 0.1;
-            predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
-            let sample = Sample {
-                seq,
-                t_s: at,
-                point_in_world: path(at),
-                ..t.samples[0].clone()
-            };
-            t.predictor.score(&sample, None);
-            t.samples.push_back(sample);
-        }
+        let (t, _) = followed_on_a_curve(None);
         assert_eq!(t.predictor.followed(), QUADRATIC);
         assert_eq!(t.predictor.sigma_px(), None);
     }

@@ -163,9 +163,7 @@ impl Fit {
         .sqrt();
         Some((step, cost, centre_sigma_px))
     }
-}
 
-impl Fit {
     /// Each pixel's row of the normal equations into `rows` (its residual before the step and
     /// its Jacobian, the radius and edge's terms as `free` says), and the sum of the squared
     /// residuals. Kept apart from their sums so that the model's evaluation at one pixel
