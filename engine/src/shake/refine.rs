@@ -491,7 +491,8 @@ impl CameraShake {
     }
 
     /// Lone found particles teach their tracks' shapes, and the camera the residual they
-    /// leave and the edge they have.
+    /// leave and the edge they have; the other particles without a learnt shape get one
+    /// guessed with what the camera now knows.
     fn learn(
         &mut self,
         image: ImageView<'_>,
@@ -501,7 +502,8 @@ impl CameraShake {
         shapes: &mut [Option<Shape>],
     ) {
         let mut learnt = Learnt::default();
-        for (w, shape) in wanted.iter().zip(shapes.iter_mut()) {
+        let mut unlearnt = Vec::new();
+        for (k, (w, shape)) in wanted.iter().zip(shapes.iter_mut()).enumerate() {
             // A shape is learnt once, and again when `relearn` says so; until then a guess
             // follows the particle's size.
             let unknown = shape.is_none_or(|s| s.guessed);
@@ -522,10 +524,16 @@ impl CameraShake {
                 }
             }
             if unknown {
-                *shape = self.guess(image, seen, w).or(*shape);
+                unlearnt.push(k);
             }
         }
+        // The rest are guessed with what this frame's lone particles taught the camera: on
+        // the first frame there is nothing else to guess with, and a track left without a
+        // shape would be fitted alone again next frame.
         learnt.teach(self);
+        for k in unlearnt {
+            shapes[k] = self.guess(image, seen, &wanted[k]).or(shapes[k]);
+        }
     }
 
     /// The shape of a particle that has not stood alone, with the camera's learnt edge: its
@@ -760,6 +768,31 @@ mod tests {
             "{again:?}"
         );
         assert!((again.edge_px - shape.edge_px).abs() < 1e-3, "{again:?}");
+    }
+
+    #[test]
+    fn on_its_first_frame_a_camera_guesses_what_it_cannot_learn_from_what_its_lone_particles_taught(
+    ) {
+        // One particle stands alone, two touch: a camera that has learnt nothing yet learns
+        // the first's shape, and gives the touching ones shapes guessed with its edge.
+        let truth = [disc(15.4, 12.7), disc(40.0, 15.0), disc(44.5, 15.5)];
+        let pixels = draw(60, 30, &truth);
+        let image = ImageView::new(60, 30, &pixels).expect("sized");
+        let centroids = [at(15.0, 13.0), at(40.0, 15.0), at(44.5, 15.5)];
+        let seen = seen_at(&centroids, 6.0, true);
+        let mut shapes = [None; 3];
+        let mut camera = CameraShake::default();
+        camera.learn_shapes(image, &seen, &wanted_at(&centroids), &mut shapes);
+        let learnt = shapes[0].expect("learnt");
+        assert!(
+            !learnt.guessed && (learnt.radius_px - 3.0).abs() < 0.05,
+            "{learnt:?}"
+        );
+        for guessed in &shapes[1..] {
+            let guessed = guessed.expect("guessed");
+            assert!(guessed.guessed, "{guessed:?}");
+            assert_eq!(guessed.edge_px, learnt.edge_px);
+        }
     }
 
     #[test]
