@@ -194,6 +194,22 @@ impl PointGrid {
         k: usize,
         skip: usize,
     ) -> Vec<(RectPoint, usize)> {
+        let mut found = Vec::with_capacity(4 * k);
+        self.nearest_unordered(x, y, k, skip, &mut found);
+        found.sort_unstable_by(nearest_first);
+        found.into_iter().map(|(_, p)| p).collect()
+    }
+
+    /// As [`Self::nearest_indexed`], in no particular order, into `found` (cleared first) with
+    /// each one's squared distance: for a caller that needs only which points they are.
+    pub(crate) fn nearest_unordered(
+        &self,
+        x: f64,
+        y: f64,
+        k: usize,
+        skip: usize,
+        found: &mut Vec<(f64, (RectPoint, usize))>,
+    ) {
         // Start at a radius that holds about twice `k` points at the grid's mean density: a
         // sparse grid would otherwise be scanned again at every radius up to the one it needs.
         let area = (self.columns * self.rows) as f64 * self.cell_px * self.cell_px;
@@ -201,7 +217,6 @@ impl PointGrid {
             / (std::f64::consts::PI * self.points.len().max(1) as f64))
             .sqrt();
         let mut half = self.cell_px.max(expected);
-        let mut found: Vec<(f64, (RectPoint, usize))> = Vec::with_capacity(4 * k);
         loop {
             // By squared distance: the same order, without a square root per point.
             found.clear();
@@ -213,20 +228,24 @@ impl PointGrid {
             }
             let everything = half > self.cell_px * (self.columns + self.rows) as f64;
             if found.len() >= k || everything {
-                // Nearest first, ties by index: only the k nearest need an order.
-                let order = |a: &(f64, (RectPoint, usize)), b: &(f64, (RectPoint, usize))| {
-                    a.0.total_cmp(&b.0).then(a.1 .1.cmp(&b.1 .1))
-                };
+                // Only which are the k nearest matters here (ties by index).
                 if found.len() > k {
-                    found.select_nth_unstable_by(k, order);
+                    found.select_nth_unstable_by(k, nearest_first);
                     found.truncate(k);
                 }
-                found.sort_unstable_by(order);
-                return found.into_iter().map(|(_, p)| p).collect();
+                return;
             }
             half *= 2.0;
         }
     }
+}
+
+/// Nearest first by squared distance, ties by index.
+fn nearest_first(
+    a: &(f64, (RectPoint, usize)),
+    b: &(f64, (RectPoint, usize)),
+) -> std::cmp::Ordering {
+    a.0.total_cmp(&b.0).then(a.1 .1.cmp(&b.1 .1))
 }
 
 /// Point indices sorted by x, so a box query costs a binary search plus its hits.

@@ -125,11 +125,13 @@ impl Neighbours {
             .map(|near| self.median_velocity(&near))
     }
 
-    /// The [`NEIGHBOURS`] tracks nearest `p` but the `skip`-th, by index; `None` where there
-    /// are fewer.
-    fn nearest(&self, p: RectPoint, skip: usize) -> Option<Vec<usize>> {
-        let near = self.grid.nearest_indexed(p.x, p.y, NEIGHBOURS, skip);
-        (near.len() >= NEIGHBOURS).then(|| near.into_iter().map(|(_, i)| i).collect())
+    /// The [`NEIGHBOURS`] tracks nearest `p` but the `skip`-th, by index, in no particular
+    /// order (what is made of them does not depend on it); `None` where there are fewer.
+    fn nearest(&self, p: RectPoint, skip: usize) -> Option<[usize; NEIGHBOURS]> {
+        let mut found = Vec::with_capacity(4 * NEIGHBOURS);
+        self.grid
+            .nearest_unordered(p.x, p.y, NEIGHBOURS, skip, &mut found);
+        (found.len() >= NEIGHBOURS).then(|| std::array::from_fn(|n| found[n].1 .1))
     }
 
     /// The median velocity (per component) of the tracks `near`.
