@@ -502,11 +502,9 @@ impl CameraShake {
         shapes: &mut [Option<Shape>],
     ) {
         let mut learnt = Learnt::default();
-        let mut unlearnt = Vec::new();
-        for (k, (w, shape)) in wanted.iter().zip(shapes.iter_mut()).enumerate() {
+        for (w, shape) in wanted.iter().zip(shapes.iter_mut()) {
             // A shape is learnt once, and again when `relearn` says so; until then a guess
             // follows the particle's size.
-            let unknown = shape.is_none_or(|s| s.guessed);
             let attempt = shape.is_none() || w.relearn;
             if let Some(d) = w.detection.filter(|&d| attempt && near.alone(seen, d)) {
                 let s = &seen[d];
@@ -520,19 +518,17 @@ impl CameraShake {
                 if let Some((shape_now, rms)) = learnt_now {
                     *shape = Some(shape_now);
                     learnt.add(shape_now, rms, s.diameter_px, w.disparity_px);
-                    continue;
                 }
             }
-            if unknown {
-                unlearnt.push(k);
-            }
         }
-        // The rest are guessed with what this frame's lone particles taught the camera: on
-        // the first frame there is nothing else to guess with, and a track left without a
-        // shape would be fitted alone again next frame.
+        // The rest (no shape, or a guessed one) are guessed with what this frame's lone
+        // particles taught the camera: on the first frame there is nothing else to guess with,
+        // and a track left without a shape would be fitted alone again next frame.
         learnt.teach(self);
-        for k in unlearnt {
-            shapes[k] = self.guess(image, seen, &wanted[k]).or(shapes[k]);
+        for (w, shape) in wanted.iter().zip(shapes.iter_mut()) {
+            if shape.is_none_or(|s| s.guessed) {
+                *shape = self.guess(image, seen, w).or(*shape);
+            }
         }
     }
 
