@@ -63,7 +63,8 @@ pub struct VelocityConfig {
     /// `outlier_neighbours` nearest (in space) and a vector is dropped when a component differs
     /// from the neighbours' median by more than `outlier_threshold` times their median
     /// deviation plus `outlier_noise_fraction` of their median speed, where the neighbours
-    /// agree in every component to within `outlier_coherence` of their speed (universal outlier
+    /// agree in every component to within `outlier_coherence` of their speed, beyond what the
+    /// frame's vectors' stated noise spreads them by (universal outlier
     /// detection, Westerweel & Scarano 2005; [`outliers::neighbour_outliers`]). Catches what
     /// each track's own smoothness cannot:
     /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
@@ -73,7 +74,8 @@ pub struct VelocityConfig {
     pub outlier_threshold: f64,
     /// Deviation always allowed, a fraction of the neighbours' median speed.
     pub outlier_noise_fraction: f64,
-    /// Neighbours are asked only where they agree to within this fraction of their speed.
+    /// Neighbours are asked only where they agree to within this fraction of their speed
+    /// (beyond their noise).
     pub outlier_coherence: f64,
 }
 
@@ -717,7 +719,7 @@ fn outliers_among<'a>(
     test: &NeighbourTest,
 ) -> Vec<bool> {
     let vectors: Vec<_> = vectors
-        .map(|v| (v.position_in_world, v.velocity_in_world))
+        .map(|v| (v.position_in_world, v.velocity_in_world, v.velocity_sigma))
         .collect();
     neighbour_outliers(&vectors, test)
 }

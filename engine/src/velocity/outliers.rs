@@ -18,19 +18,23 @@ pub struct NeighbourTest {
     /// noise alone.
     pub noise_fraction: f64,
     /// A vector is tested only where its neighbours agree: their median deviation, in every
-    /// component, under this fraction of their median speed. Where vectors sample the flow too
-    /// sparsely to resolve it, neighbours differ for real and the test would drop good vectors
-    /// (asked of one component at a time, eight neighbours of an unresolved field agree on one
-    /// by chance often enough to matter).
+    /// component, under this fraction of their median speed plus what the vectors' own noise
+    /// spreads that component by. Where vectors sample the flow too sparsely to resolve it,
+    /// neighbours differ for real and the test would drop good vectors (asked of one component
+    /// at a time, eight neighbours of an unresolved field agree on one by chance often enough
+    /// to matter). Noise is not flow: depth noise alone spreads the out-of-plane component
+    /// of slow flow beyond a fraction of its speed, and would otherwise shelter a vector far
+    /// off in every component.
     pub coherence: f64,
 }
 
-/// For each vector (position, velocity), whether it strays from its neighbours by the test:
+/// For each vector (position, velocity, its stated 1-sigma error per component), whether it
+/// strays from its neighbours by the test:
 /// a wrong stereo pair or a track that swapped particles gives a velocity its neighbours do not
 /// share, however smooth its own path. Deterministic whatever the input order of equidistant
 /// points' ties (broken by index); fewer than `neighbours + 1` vectors are not tested.
 pub fn neighbour_outliers(
-    vectors: &[(Point3<f64>, Vector3<f64>)],
+    vectors: &[(Point3<f64>, Vector3<f64>, Vector3<f64>)],
     test: &NeighbourTest,
 ) -> Vec<bool> {
     let k = test.neighbours;
@@ -38,11 +42,12 @@ pub fn neighbour_outliers(
     if k == 0 || vectors.len() <= k {
         return outliers;
     }
+    let noise = typical_noise(vectors);
     let positions: Vec<Point3<f64>> = vectors.iter().map(|v| v.0).collect();
     let grid = Grid3::new(&positions);
     let mut nearest: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
     let mut component = vec![0.0; k];
-    for (i, &(_, velocity)) in vectors.iter().enumerate() {
+    for (i, &(_, velocity, _)) in vectors.iter().enumerate() {
         grid.nearest(&positions, i, k, &mut nearest);
         let mut centre = Vector3::zeros();
         let mut spread = Vector3::zeros();
@@ -57,7 +62,7 @@ pub fn neighbour_outliers(
             spread[c] = median(&mut component);
         }
         let speed = centre.norm();
-        let coherent = spread.iter().all(|&s| s < test.coherence * speed);
+        let coherent = (0..3).all(|c| spread[c] < test.coherence * speed + noise[c]);
         outliers[i] = coherent
             && (0..3).any(|c| {
                 (velocity[c] - centre[c]).abs()
@@ -65,6 +70,17 @@ pub fn neighbour_outliers(
             });
     }
     outliers
+}
+
+/// The spread a frame's vectors' noise alone gives their neighbours, per component: the
+/// median absolute deviation of a normal variable with the median stated sigma.
+fn typical_noise(vectors: &[(Point3<f64>, Vector3<f64>, Vector3<f64>)]) -> Vector3<f64> {
+    let mut component = Vec::with_capacity(vectors.len());
+    Vector3::from_fn(|c, _| {
+        component.clear();
+        component.extend(vectors.iter().map(|v| v.2[c]));
+        0.6745 * median(&mut component)
+    })
 }
 
 /// Points binned in a regular grid of cubes over the box holding all but their outermost,
@@ -233,8 +249,12 @@ mod tests {
     };
 
     /// Vectors on a 6 x 6 x 2 grid (2 cm spacing) of velocity `(1, 0, -1)` plus `wobble` times
-    /// a deterministic pattern in -1..1 per component.
-    fn grid_field(wobble: f64) -> Vec<(Point3<f64>, Vector3<f64>)> {
+    /// a deterministic pattern in -1..1 per component, each stated with 1-sigma errors of
+    /// `sigma`.
+    fn field_with(
+        wobble: Vector3<f64>,
+        sigma: Vector3<f64>,
+    ) -> Vec<(Point3<f64>, Vector3<f64>, Vector3<f64>)> {
         let pattern = |i: usize, c: usize| {
             let mut x = ((i * 3 + c) as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
             x ^= x >> 31;
@@ -246,9 +266,27 @@ mod tests {
             .map(|i| {
                 let p = Point3::new((i % 6) as f64, (i / 6 % 6) as f64, (i / 36) as f64) * 0.02;
                 let v = Vector3::new(1.0, 0.0, -1.0)
-                    + wobble * Vector3::new(pattern(i, 0), pattern(i, 1), pattern(i, 2));
-                (p, v)
+                    + wobble.component_mul(&Vector3::new(
+                        pattern(i, 0),
+                        pattern(i, 1),
+                        pattern(i, 2),
+                    ));
+                (p, v, sigma)
             })
+            .collect()
+    }
+
+    /// [`field_with`] with the same wobble in every component, stated with a sigma of half
+    /// of it.
+    fn grid_field(wobble: f64) -> Vec<(Point3<f64>, Vector3<f64>, Vector3<f64>)> {
+        field_with(Vector3::repeat(wobble), Vector3::repeat(0.5 * wobble))
+    }
+
+    fn flagged(field: &[(Point3<f64>, Vector3<f64>, Vector3<f64>)]) -> Vec<usize> {
+        neighbour_outliers(field, &TEST)
+            .iter()
+            .enumerate()
+            .filter_map(|(i, &o)| o.then_some(i))
             .collect()
     }
 
@@ -258,12 +296,7 @@ mod tests {
         let mut field = grid_field(0.007);
         assert!(neighbour_outliers(&field, &TEST).iter().all(|&o| !o));
         field[20].1.z -= 0.14;
-        let flagged: Vec<usize> = neighbour_outliers(&field, &TEST)
-            .iter()
-            .enumerate()
-            .filter_map(|(i, &o)| o.then_some(i))
-            .collect();
-        assert_eq!(flagged, [20]);
+        assert_eq!(flagged(&field), [20]);
         // The same answer whatever the order the vectors come in.
         let reversed: Vec<_> = field.iter().rev().copied().collect();
         let mut back = neighbour_outliers(&reversed, &TEST);
@@ -320,10 +353,24 @@ mod tests {
 
     #[test]
     fn where_neighbours_disagree_nothing_is_judged() {
-        // Neighbours 30 % apart: the flow is not resolved at this spacing, so a vector 40 %
-        // off its neighbours' median is not called an outlier.
-        let mut field = grid_field(0.3);
+        // Neighbours 30 % apart, each stated to 1 %: the flow is not resolved at this spacing,
+        // so a vector 40 % off its neighbours' median is not called an outlier.
+        let mut field = field_with(Vector3::repeat(0.3), Vector3::repeat(0.01));
         field[20].1.z -= 0.4;
-        assert!(neighbour_outliers(&field, &TEST).iter().all(|&o| !o));
+        assert!(flagged(&field).is_empty());
+    }
+
+    #[test]
+    fn noise_in_one_component_does_not_shelter_a_vector_off_in_another() {
+        // Slow flow seen from afar: u and v to 0.5 %, w spread by its depth noise over 10 %
+        // of the speed (and stated so). One vector 30 % off in u, a track that swapped
+        // particles, is still found; without it, nothing is.
+        let mut field = field_with(
+            Vector3::new(0.005, 0.005, 0.2),
+            Vector3::new(0.003, 0.003, 0.15),
+        );
+        assert!(flagged(&field).is_empty());
+        field[20].1.x += 0.3;
+        assert_eq!(flagged(&field), [20]);
     }
 }
