@@ -4,7 +4,9 @@
 //!
 //! Two models predict: a line through the last few samples and a quadratic through a few more.
 //! Each track scores both against where its particle was then found and follows the one that
-//! has missed less (a vortex's curved path wants the quadratic, a noisy straight one the line).
+//! has missed less (a vortex's curved path wants the quadratic, a noisy straight one the line);
+//! before its first prediction it scores them on its own newest samples, each predicted from
+//! the ones before it.
 //! Its search radius is a few times its own mean miss in the images, learnt the same way; a
 //! track that has not been scored yet borrows the scene's.
 //!
@@ -13,6 +15,8 @@
 //! Younger still (one or two samples: a new stereo pair), it is carried by its neighbours' flow
 //! where it lies among them, and is looked for there like any other track: a hypothesis that
 //! time settles, in 3D, where the chain would link it per camera.
+
+use std::collections::VecDeque;
 
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
@@ -41,6 +45,9 @@ const GATE_SIGMAS: f64 = 4.0;
 const MIN_GATE_PX: f64 = 1.0;
 /// Weight of the newest miss in a track's running means.
 const MISS_WEIGHT: f64 = 0.3;
+/// Newest samples a track that has never been scored predicts from the samples before each,
+/// to choose its model before its first prediction.
+const HINDCAST_SAMPLES: usize = 4;
 
 /// The models a track predicts with.
 const LINE: usize = 0;
@@ -82,6 +89,27 @@ impl Predictor {
         }
         if let Some(miss_px) = miss_px {
             self.miss_sq_px = Some(running_mean(self.miss_sq_px, miss_px * miss_px));
+        }
+    }
+
+    /// Scores both models on the track's own newest samples ([`HINDCAST_SAMPLES`]), each
+    /// predicted from the samples before it, where neither has been scored yet: a track's
+    /// first prediction then follows the model that fits its path (a line from a vortex's
+    /// curve misses by its whole bend, and claims whatever lies there).
+    fn hindcast(&mut self, samples: &VecDeque<Sample>) {
+        if self.miss_sq_m != [None, None] {
+            return;
+        }
+        let history: Vec<(f64, Point3<f64>)> =
+            samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+        for k in history.len().saturating_sub(HINDCAST_SAMPLES).max(2)..history.len() {
+            let (t_s, at) = history[k];
+            for (model, p) in models_at(&history[..k], t_s).iter().enumerate() {
+                if let Some(p) = p {
+                    let miss = (p - at).norm_squared();
+                    self.miss_sq_m[model] = Some(running_mean(self.miss_sq_m[model], miss));
+                }
+            }
         }
     }
 
@@ -198,7 +226,10 @@ fn predict_one(
     }
     let models = match carried {
         Some(p) => [Some(p), None],
-        None => model_predictions(track, t_s),
+        None => {
+            track.predictor.hindcast(&track.samples);
+            model_predictions(track, t_s)
+        }
     };
     // A carried prediction is the neighbours' flow, not either model's: only its miss in the
     // images is the track's (it sets the next gate).
@@ -209,9 +240,17 @@ fn predict_one(
 
 /// Where the line and the quadratic put the track's particle at `t_s`.
 fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
-    let line = fit_line(&newest(track, LINE_SAMPLES), t_s).map(|f| f.position);
-    let quadratic = (track.samples.len() > LINE_SAMPLES)
-        .then(|| quadratic_position(&newest(track, QUADRATIC_SAMPLES), t_s))
+    models_at(&newest(track, QUADRATIC_SAMPLES), t_s)
+}
+
+/// Where the line (through the newest [`LINE_SAMPLES`] of `history`, time and position) and
+/// the quadratic (through the newest [`QUADRATIC_SAMPLES`], once there are more than the
+/// line's) put a particle at `t_s`.
+fn models_at(history: &[(f64, Point3<f64>)], t_s: f64) -> [Option<Point3<f64>>; 2] {
+    let n = history.len();
+    let line = fit_line(&history[n.saturating_sub(LINE_SAMPLES)..], t_s).map(|f| f.position);
+    let quadratic = (n > LINE_SAMPLES)
+        .then(|| quadratic_position(&history[n.saturating_sub(QUADRATIC_SAMPLES)..], t_s))
         .flatten();
     [line, quadratic]
 }
@@ -299,6 +338,24 @@ mod tests {
         let miss = (models[QUADRATIC].expect("fitted") - path(1.5)).norm();
         assert!(miss < 1e-9, "a quadratic path is predicted exactly: {miss}");
         assert!((t.predictor.sigma_px().expect("scored") - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_track_on_a_curve_follows_the_quadratic_from_its_first_prediction() {
+        // Never scored: its own newest samples, each predicted from those before it, show the
+        // line missing the bend.
+        let path = |t: f64| Point3::new(0.1 * t, 0.5 * t * t, 0.5);
+        let mut t = track(path, MIN_SAMPLES as u64);
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let seq = MIN_SAMPLES as u64 + 1;
+        let at = seq as f64 * 0.1;
+        let pose = Isometry3::identity();
+        let p = predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
+        assert_eq!(t.predictor.followed(), QUADRATIC);
+        let (left, _) = rect.project(&path(at)).expect("in front");
+        let miss = (p[0].left.x - left.x).hypot(p[0].left.y - left.y);
+        assert!(miss < 1e-6, "{miss} px");
     }
 
     #[test]
