@@ -25,8 +25,10 @@ pub(crate) struct SparseParams {
     /// local mean of the blurred image (`detect.contrast_c`); the 3x3 mean cuts sensor noise by
     /// three, so 4 keeps every pixel the detector can find without keeping noise.
     pub(crate) threshold: u8,
-    /// Kept pixels are grown by this many pixels each way, so a particle's rim and the detector's
-    /// 5x5 blur around it arrive exact.
+    /// Kept pixels are grown by this many pixels each way, so a particle's rim, the detector's
+    /// 5x5 blur around it and the pixels the fits read around it (its edge plus three edge
+    /// widths and a 2-pixel margin) arrive exact: a fit reading the painted background, where
+    /// a block half covered by a particle paints a halo, is pulled off the particle.
     pub(crate) margin_px: u8,
 }
 
@@ -35,7 +37,7 @@ impl Default for SparseParams {
         Self {
             block_px: 16,
             threshold: 4,
-            margin_px: 3,
+            margin_px: 5,
         }
     }
 }
