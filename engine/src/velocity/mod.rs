@@ -68,10 +68,7 @@ pub struct VelocityConfig {
     /// detection, Westerweel & Scarano 2005; [`outliers::neighbour_outliers`]). Catches what
     /// each track's own smoothness cannot:
     /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
-    /// 16: about the natural (Delaunay) neighbours a point of a 3D cloud has (15.5 on
-    /// average), as PIV's 8 are a 2D grid point's; with fewer, two or three wrong vectors
-    /// side by side (overlaps at a run's start, a room's texture) spread the median deviation
-    /// enough to shelter each other. 0: off (the method).
+    /// 0: off (the method).
     pub outlier_neighbours: usize,
     /// Median deviations a component may stray (see `outlier_neighbours`).
     pub outlier_threshold: f64,
@@ -93,7 +90,7 @@ impl Default for VelocityConfig {
             adaptive_fit: true,
             min_window_travel_px: 60.0,
             line_past_frames: 15,
-            outlier_neighbours: 16,
+            outlier_neighbours: 8,
             outlier_threshold: 4.0,
             outlier_noise_fraction: 0.02,
             outlier_coherence: 0.05,

@@ -21,7 +21,7 @@ pub struct NeighbourTest {
     /// component, under this fraction of their median speed plus what the vectors' own noise
     /// spreads that component by. Where vectors sample the flow too sparsely to resolve it,
     /// neighbours differ for real and the test would drop good vectors (asked of one component
-    /// at a time, the neighbours of an unresolved field agree on one by chance often enough
+    /// at a time, eight neighbours of an unresolved field agree on one by chance often enough
     /// to matter). Noise is not flow: depth noise alone spreads the out-of-plane component
     /// of slow flow beyond a fraction of its speed, and would otherwise shelter a vector far
     /// off in every component.
