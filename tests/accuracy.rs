@@ -317,7 +317,7 @@ fn looking_where_tracks_expect_particles_keeps_them_through_overlaps() {
 /// Vectors that stray from their neighbours (`velocity.outlier_neighbours`) are dropped: in
 /// creeping flow, biased centroids of slowly passing neighbours give smooth tracks with wrong
 /// velocities that no track's own smoothness reveals. Measured: outliers (error above 20 % of
-/// the mean speed) 4.7 % -> 0.4 %, w error 10.3 % -> 4.1 %, measurable yield 74.9 % -> 69.3 %
+/// the mean speed) 5.3 % -> 0.4 %, w error 10.4 % -> 3.7 %, measurable yield 77.6 % -> 71.2 %
 /// (most of what is lost was those outliers).
 #[test]
 fn vectors_straying_from_their_neighbours_are_dropped() {
