@@ -100,8 +100,8 @@ impl Predictor {
         if self.miss_sq_m != [None, None] {
             return;
         }
-        let history: Vec<(f64, Point3<f64>)> =
-            samples.iter().map(|s| (s.t_s, s.point_in_world)).collect();
+        // Each hindcast sample is predicted from the models' samples before it.
+        let history = newest(samples, HINDCAST_SAMPLES + QUADRATIC_SAMPLES);
         for k in history.len().saturating_sub(HINDCAST_SAMPLES).max(2)..history.len() {
             let (t_s, at) = history[k];
             for (model, p) in models_at(&history[..k], t_s).iter().enumerate() {
@@ -240,7 +240,7 @@ fn predict_one(
 
 /// Where the line and the quadratic put the track's particle at `t_s`.
 fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
-    models_at(&newest(track, QUADRATIC_SAMPLES), t_s)
+    models_at(&newest(&track.samples, QUADRATIC_SAMPLES), t_s)
 }
 
 /// Where the line (through the newest [`LINE_SAMPLES`] of `history`, time and position) and
@@ -255,11 +255,10 @@ fn models_at(history: &[(f64, Point3<f64>)], t_s: f64) -> [Option<Point3<f64>>; 
     [line, quadratic]
 }
 
-/// The track's newest `n` samples as (time, position in the world).
-fn newest(track: &Track3d, n: usize) -> Vec<(f64, Point3<f64>)> {
-    let skip = track.samples.len().saturating_sub(n);
-    track
-        .samples
+/// A track's newest `n` samples as (time, position in the world).
+fn newest(samples: &VecDeque<Sample>, n: usize) -> Vec<(f64, Point3<f64>)> {
+    let skip = samples.len().saturating_sub(n);
+    samples
         .iter()
         .skip(skip)
         .map(|s| (s.t_s, s.point_in_world))

@@ -160,7 +160,7 @@ fn velocity(track: &Track3d, n: usize) -> Option<Vector3<f64>> {
     if track.samples.len() < YOUNG_SAMPLES {
         return None;
     }
-    let samples = newest(track, n);
+    let samples = newest(&track.samples, n);
     let t_s = samples.last()?.0;
     fit_line(&samples, t_s).map(|f| f.velocity)
 }
