@@ -6,7 +6,7 @@
 //! Beyond the method, [`fit_adaptive`] chooses each component's fit from the track's own
 //! residuals: a quadratic over a narrower window, a cubic, or a line reaching into the past.
 
-use nalgebra::{DMatrix, Matrix3, Point3, SMatrix, SVector, Vector3};
+use nalgebra::{Matrix3, Point3, SMatrix, SVector, Vector3};
 
 use super::uncertainty::{ComponentBudget, QuantityBudget, UncertaintyBudget};
 
@@ -72,42 +72,78 @@ fn time_scale(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<f64> {
     (scale_s.partial_cmp(&0.0) == Some(std::cmp::Ordering::Greater)).then_some(scale_s)
 }
 
+/// The most terms a [`PolynomialFit`] has: the cubic's.
+const MAX_TERMS: usize = 4;
+
 /// A least-squares polynomial `sum c_k tau^k` with `tau = (t - t_eval) / scale_s`, with what the
-/// adaptive choice needs to predict its errors.
+/// adaptive choice needs to predict its errors. Every track fits several per frame, so its sums
+/// are fixed-size (the terms it does not have are zero, their block of the inverse normal
+/// matrix the identity) and nothing but its samples' times and residuals is allocated.
 struct PolynomialFit {
+    /// The polynomial's terms (its order plus one).
+    terms: usize,
     /// Row k: the coefficient of `tau^k` for x, y and z.
-    coefficients: DMatrix<f64>,
+    coefficients: SMatrix<f64, MAX_TERMS, 3>,
     /// `(X^T X)^-1` in scaled time: a coefficient's variance is this diagonal times sigma^2.
-    inverse_normal: DMatrix<f64>,
-    /// X: row r holds `tau_r^k` for each term k.
-    design: DMatrix<f64>,
-    /// Row r: sample r's offset from the fitted curve, x, y and z.
-    residuals: DMatrix<f64>,
+    inverse_normal: SMatrix<f64, MAX_TERMS, MAX_TERMS>,
+    /// Each sample's scaled time `tau` (the design matrix X holds its powers).
+    taus: Vec<f64>,
+    /// Each sample's offset from the fitted curve, x, y and z.
+    residuals: Vec<Vector3<f64>>,
     /// Per component, sum of squared residuals.
     squared_residuals: Vector3<f64>,
     samples: usize,
     scale_s: f64,
 }
 
+/// The powers of `tau` a fit of `terms` terms has (`tau^k`), zero beyond them.
+fn powers_of(tau: f64, terms: usize) -> SVector<f64, MAX_TERMS> {
+    let mut row = SVector::zeros();
+    let mut power = 1.0;
+    for k in 0..terms {
+        row[k] = power;
+        power *= tau;
+    }
+    row
+}
+
 impl PolynomialFit {
     fn new(samples: &[(f64, Point3<f64>)], t_eval_s: f64, order: usize) -> Option<Self> {
         let terms = order + 1;
-        if samples.len() < terms {
+        if samples.len() < terms || terms > MAX_TERMS {
             return None;
         }
         let scale_s = time_scale(samples, t_eval_s)?;
-        let design = DMatrix::from_fn(samples.len(), terms, |r, k| {
-            ((samples[r].0 - t_eval_s) / scale_s).powi(k as i32)
+        let taus: Vec<f64> = samples
+            .iter()
+            .map(|(t, _)| (t - t_eval_s) / scale_s)
+            .collect();
+        // The terms the fit does not have keep the identity, so that the inverse of the whole
+        // is the inverse of the fit's own block.
+        let mut normal = SMatrix::<f64, MAX_TERMS, MAX_TERMS>::from_fn(|a, b| {
+            f64::from(u8::from(a == b && a >= terms))
         });
-        let positions = DMatrix::from_fn(samples.len(), 3, |r, c| samples[r].1[c]);
-        let inverse_normal = (design.transpose() * &design).try_inverse()?;
-        let coefficients = &inverse_normal * design.transpose() * &positions;
-        let residuals = positions - &design * &coefficients;
-        let squared_residuals = Vector3::from_fn(|c, _| residuals.column(c).norm_squared());
+        let mut moments = SMatrix::<f64, MAX_TERMS, 3>::zeros();
+        for (&tau, (_, p)) in taus.iter().zip(samples) {
+            let row = powers_of(tau, terms);
+            normal += row * row.transpose();
+            moments += row * p.coords.transpose();
+        }
+        let inverse_normal = normal.try_inverse()?;
+        let coefficients = inverse_normal * moments;
+        let residuals: Vec<Vector3<f64>> = taus
+            .iter()
+            .zip(samples)
+            .map(|(&tau, (_, p))| p.coords - coefficients.tr_mul(&powers_of(tau, terms)))
+            .collect();
+        let squared_residuals = residuals
+            .iter()
+            .fold(Vector3::zeros(), |sum, r| sum + r.component_mul(r));
         coefficients.iter().all(|v| v.is_finite()).then_some(Self {
+            terms,
             coefficients,
             inverse_normal,
-            design,
+            taus,
             residuals,
             squared_residuals,
             samples: samples.len(),
@@ -132,18 +168,31 @@ impl PolynomialFit {
     /// model: fixed by its sample times alone, so worked out once per fit.
     fn sensitivity(&self) -> Sensitivity {
         let (velocity_gain, position_gain) = self.gains();
-        let weights = &self.inverse_normal * self.design.transpose();
+        // The fit of each path term tau^p (p = 2 to 5) alone: X^T of it, its coefficients,
+        // then what of it the fit leaves.
+        let mut moments = [SVector::<f64, MAX_TERMS>::zeros(); 6];
+        for &tau in &self.taus {
+            let (row, path) = self.rows_at(tau);
+            for p in 2..=5 {
+                moments[p] += row * path[p];
+            }
+        }
+        let absorbed = moments.map(|m| self.inverse_normal * m);
+        let mut unfollowed = [0.0; 6];
+        for &tau in &self.taus {
+            let (row, path) = self.rows_at(tau);
+            for p in 2..=5 {
+                unfollowed[p] += (path[p] - row.dot(&absorbed[p])).powi(2);
+            }
+        }
         let mut velocity_per_term = [0.0; 6];
         let mut position_per_term = [0.0; 6];
         let mut unfollowed_norm_sq = [0.0; 6];
         for power in 2..=5 {
-            let powers = self.design.column(1).map(|tau| tau.powi(power));
-            let absorbed = &weights * &powers;
             let p = power as usize;
-            velocity_per_term[p] = absorbed[(1, 0)] * self.scale_s.powi(power - 1);
-            position_per_term[p] = absorbed[(0, 0)] * self.scale_s.powi(power);
-            unfollowed_norm_sq[p] =
-                (powers - &self.design * absorbed).norm_squared() * self.scale_s.powi(2 * power);
+            velocity_per_term[p] = absorbed[p][1] * self.scale_s.powi(power - 1);
+            position_per_term[p] = absorbed[p][0] * self.scale_s.powi(power);
+            unfollowed_norm_sq[p] = unfollowed[p] * self.scale_s.powi(2 * power);
         }
         Sensitivity {
             velocity: TermResponse {
@@ -158,10 +207,20 @@ impl PolynomialFit {
         }
     }
 
+    /// A sample at scaled time `tau`: its row of the design matrix, and `tau^p` for p up to 5.
+    fn rows_at(&self, tau: f64) -> (SVector<f64, MAX_TERMS>, [f64; 6]) {
+        let mut path = [1.0; 6];
+        for p in 1..6 {
+            path[p] = path[p - 1] * tau;
+        }
+        let row = SVector::from_fn(|k, _| if k < self.terms { path[k] } else { 0.0 });
+        (row, path)
+    }
+
     /// The quadratic coefficient (half the acceleration) of component `c` and its variance for
     /// a sample noise `sigma2`; `None` below order 2.
     fn quadratic_term(&self, c: usize, sigma2: f64) -> Option<(f64, f64)> {
-        (self.coefficients.nrows() > 2).then(|| {
+        (self.terms > 2).then(|| {
             let scale2 = self.scale_s * self.scale_s;
             (
                 self.coefficients[(2, c)] / scale2,
@@ -176,7 +235,7 @@ impl PolynomialFit {
 
     /// Residual degrees of freedom: samples beyond the polynomial's terms.
     fn dof(&self) -> usize {
-        self.samples.saturating_sub(self.coefficients.nrows())
+        self.samples.saturating_sub(self.terms)
     }
 
     /// Per component, the sample noise variance the residuals show (zero without residual
@@ -278,10 +337,7 @@ impl QuadraticWindow {
 
     /// Each sample's offset from the quadratic, in sample order.
     pub fn residuals(&self) -> impl Iterator<Item = Vector3<f64>> + '_ {
-        self.quadratic
-            .residuals
-            .row_iter()
-            .map(|r| Vector3::new(r[0], r[1], r[2]))
+        self.quadratic.residuals.iter().copied()
     }
 
     /// The quadratic's path at the evaluation time (`fit_quadratic` of the window).
