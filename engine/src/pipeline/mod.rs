@@ -165,6 +165,14 @@ impl Pipeline {
     /// Processes one stereo frame. A rejected frame (wrong size, time going backwards) leaves the
     /// pipeline state untouched, so the caller may report it and carry on.
     pub fn push(&mut self, frame: &StereoFrame<'_>) -> Result<FrameOutput, PipelineError> {
+        // A frame's stages fork onto the pool's threads many times (each camera, the tracks'
+        // fits). Forked from a thread outside the pool, each fork waits for a pool thread to
+        // take it and hand it back; the whole frame run on a pool thread makes one such trip.
+        rayon::scope(|_| self.push_on_pool(frame))
+    }
+
+    /// [`Self::push`], on a thread of rayon's pool.
+    fn push_on_pool(&mut self, frame: &StereoFrame<'_>) -> Result<FrameOutput, PipelineError> {
         self.check_frame(frame)?;
         let seq = self.advance(frame);
         let mut out = FrameOutput {
