@@ -629,14 +629,22 @@ mod tests {
     fn particles_too_far_for_their_depth_to_be_measured_give_no_vectors() {
         // The flume's particles, moved out to where their disparity is 1-1.5 px and scaled to
         // keep their size in the image: found, matched and tracked, but never published.
+        // Both loops: the chain, and the tracks first.
+        for track_first in [false, true] {
+            let mut config = PipelineConfig::default();
+            config.tracks.track_first = track_first;
+            far_particles_give_no_vectors(&config);
+        }
+    }
+
+    fn far_particles_give_no_vectors(config: &PipelineConfig) {
         let near = ScenarioSpec::new(Scenario::Flume);
         let rect = Rectification::new(&near.rig).expect("rectifies");
         let focal_baseline = rect.focal_px * rect.baseline_m;
         let run = |spec: &ScenarioSpec| {
             let (w, h) = (spec.rig.width as usize, spec.rig.height as usize);
             let mut synth = Synthesizer::new(spec.clone(), 30, 5);
-            let mut pipeline =
-                Pipeline::new(spec.rig.clone(), PipelineConfig::default()).expect("valid");
+            let mut pipeline = Pipeline::new(spec.rig.clone(), config.clone()).expect("valid");
             let mut totals = FrameStats::default();
             for _ in 0..30 {
                 let f = synth.next_frame();

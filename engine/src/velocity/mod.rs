@@ -363,7 +363,9 @@ impl Velocities {
     /// see, and a recording never keep, an arrow tens of metres away at hundreds of m/s.
     /// - Inside the measurement volume: its particle's depth is resolved, seen at a disparity of
     ///   at least `MIN_MEASURED_DISPARITY_PX` (beyond, half a pixel of matching error moves the
-    ///   depth by more than a quarter of itself: a match there says little more than "far").
+    ///   depth by more than a quarter of itself: a match there says little more than "far"),
+    ///   by the median of the track's samples around the vector (one sample's disparity is off
+    ///   by its matching error, and a far particle's by a large part of itself).
     /// - No faster than a tracked particle can move: over one frame interval its step must
     ///   move the particle across the image, or change its disparity, by at most half the
     ///   image's longer side (a particle must stay in view for the frames its velocity is
@@ -378,10 +380,16 @@ impl Velocities {
         };
         let focal_px = self.rect.focal_px;
         let focal_baseline = focal_px * self.rect.baseline_m;
-        let depth = at.depth_m;
-        if !(depth > 0.0 && depth * MIN_MEASURED_DISPARITY_PX <= focal_baseline) {
+        let farthest_m = focal_baseline / MIN_MEASURED_DISPARITY_PX;
+        if !resolved_within(
+            track,
+            at,
+            2 * self.config.half_window_frames as u64,
+            farthest_m,
+        ) {
             return false;
         }
+        let depth = at.depth_m;
         let (first, last) = match (track.samples.front(), track.samples.back()) {
             (Some(first), Some(last)) if last.seq > first.seq => (first, last),
             _ => return true,
@@ -654,6 +662,29 @@ impl Velocities {
         } else {
             m
         }
+    }
+}
+
+/// Whether `track`'s particle is seen nearer than `farthest_m` (and in front of the rig) around
+/// sample `at`: by the median depth of its samples within `reach` frames of it that both
+/// cameras measured (a sample one camera hid has only its predicted depth), or by `at`'s own
+/// where there are none. Most tracks lie well inside: their samples are not sorted.
+fn resolved_within(track: &Track3d, at: &Sample, reach: u64, farthest_m: f64) -> bool {
+    let inside = |depth: f64| depth > 0.0 && depth <= farthest_m;
+    let depths = track
+        .samples
+        .iter()
+        .filter(|s| s.seen_from.is_none() && s.seq.abs_diff(at.seq) <= reach)
+        .map(|s| s.depth_m);
+    let (mut seen, mut all_inside) = (0, true);
+    for depth in depths.clone() {
+        seen += 1;
+        all_inside &= inside(depth);
+    }
+    match (seen, all_inside) {
+        (0, _) => inside(at.depth_m),
+        (_, true) => true,
+        _ => inside(crate::spatial::median(&mut depths.collect::<Vec<_>>())),
     }
 }
 
