@@ -213,8 +213,7 @@ impl PolynomialFit {
         for p in 1..6 {
             path[p] = path[p - 1] * tau;
         }
-        let row = SVector::from_fn(|k, _| if k < self.terms { path[k] } else { 0.0 });
-        (row, path)
+        (powers_of(tau, self.terms), path)
     }
 
     /// The quadratic coefficient (half the acceleration) of component `c` and its variance for

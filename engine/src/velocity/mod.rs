@@ -63,9 +63,9 @@ pub struct VelocityConfig {
     /// `outlier_neighbours` nearest (in space) and a vector is dropped when a component differs
     /// from the neighbours' median by more than `outlier_threshold` times their median
     /// deviation plus `outlier_noise_fraction` of their median speed, where the neighbours
-    /// agree in every component to within `outlier_coherence` of their speed, beyond what the
-    /// frame's vectors' stated noise spreads them by (universal outlier
-    /// detection, Westerweel & Scarano 2005; [`outliers::neighbour_outliers`]). Catches what
+    /// agree in every component to within `outlier_coherence` of their speed, beyond what
+    /// their own stated noise spreads them by (universal outlier detection, Westerweel &
+    /// Scarano 2005; [`outliers::neighbour_outliers`]). Catches what
     /// each track's own smoothness cannot:
     /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
     /// 0: off (the method).
