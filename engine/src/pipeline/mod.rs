@@ -732,10 +732,11 @@ mod tests {
 
     #[test]
     fn tracks_first_find_their_particles_and_measure_them_as_well_as_the_chain() {
-        let chain = flume_run(PipelineConfig::default());
-        let mut config = PipelineConfig::default();
-        config.tracks.track_first = true;
-        let first = flume_run(config);
+        let mut chain_config = PipelineConfig::default();
+        chain_config.tracks.track_first = false;
+        let chain = flume_run(chain_config);
+        let first = flume_run(PipelineConfig::default());
+        assert!(PipelineConfig::default().tracks.track_first, "the default");
         let truth = match ScenarioSpec::new(Scenario::Flume).flow {
             crate::synth::Flow::Uniform(v) => v,
             other => panic!("the flume's flow is uniform: {other:?}"),

@@ -33,10 +33,11 @@ pub struct TrackConfig {
     pub rejoin_tolerance_px: f64,
     /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
     pub rejoin_tolerance_sigmas: f64,
-    /// Track first: every 3D track of eight samples or more (or of three that moves as its
-    /// mature neighbours do) predicts its particle in the new frame and takes the detections
-    /// nearest its projections in both images (learnt gates), before the per-camera chain (2D linking, stereo matching) runs on the detections no
-    /// track explains. False: the chain alone (the method).
+    /// Track first (the default): every 3D track of eight samples or more (or of three that
+    /// moves as its mature neighbours do) predicts its particle in the new frame and takes the
+    /// detections nearest its projections in both images (learnt gates), before the
+    /// per-camera chain (2D linking, stereo matching) runs on the detections no track
+    /// explains. False: the chain alone (the method's frame loop).
     pub track_first: bool,
 }
 
@@ -46,7 +47,7 @@ impl Default for TrackConfig {
             rejoin_frames: 2,
             rejoin_tolerance_px: 3.0,
             rejoin_tolerance_sigmas: 12.0,
-            track_first: false,
+            track_first: true,
         }
     }
 }
