@@ -210,8 +210,8 @@ impl ActiveTrack {
 
 /// How far a prediction at constant velocity may miss, as a fraction of the per-frame step: a
 /// particle turning through a vortex changes its velocity by up to this much per frame (a
-/// sixth of a radian at 5 rad/s and 30 Hz), which a first step from three frames and a rejoined
-/// 3D track must both allow for.
+/// sixth of a radian at 5 rad/s and 30 Hz), which a first step from three frames must allow
+/// for, and a rejoined 3D track until the tracks have shown how far their own paths turn.
 pub(crate) const TURN_PER_FRAME: f64 = 0.3;
 
 /// A track that stays within this distance of one point is not moving.

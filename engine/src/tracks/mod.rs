@@ -17,6 +17,7 @@ use crate::predict::Predictor;
 use crate::shake::refine::Shape;
 
 mod rejoin;
+mod turn;
 
 /// How broken 3D tracks are rejoined (the file keeps these keys in `[link]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -29,7 +30,9 @@ pub struct TrackConfig {
     /// where particles cross or crowd; without this its 3D track, and the velocity window,
     /// ended there. 0 keeps a 3D track only while both camera tracks go on (the method).
     pub rejoin_frames: u32,
-    /// How far across the line of sight a rejoining pair may lie from the prediction, pixels.
+    /// How far across the line of sight a rejoining pair may lie from the prediction, pixels:
+    /// the floor; a fast particle may lie as far off as the tracks' paths are seen to turn in
+    /// a frame.
     pub rejoin_tolerance_px: f64,
     /// How far along the line of sight, in depth-noise sigmas (`velocity.disparity_sigma_px`).
     pub rejoin_tolerance_sigmas: f64,
@@ -212,6 +215,8 @@ pub(crate) struct Tracks {
     live: BTreeMap<u64, Track3d>,
     retired: Vec<Track3d>,
     next_id: u64,
+    /// How far the tracks' paths turn per frame (what a rejoin allows for).
+    turns: turn::Turns,
 }
 
 impl Tracks {
@@ -232,6 +237,7 @@ impl Tracks {
             live: BTreeMap::new(),
             retired: Vec::new(),
             next_id: 0,
+            turns: turn::Turns::default(),
         }
     }
 
@@ -314,6 +320,8 @@ impl Tracks {
                 continue;
             };
             track.predictor.score(&sample, Some(miss_px));
+            self.turns
+                .learn(&track, &sample, self.config.rejoin_tolerance_px);
             // A particle hidden in one image was not matched: it is no stereo point.
             let to = if sample.separation == Separation::Hidden {
                 &mut *partial_points
@@ -390,7 +398,7 @@ impl Tracks {
     /// Adds a pair's sample to `track` (its partner now the pair's) and keeps the track among
     /// this frame's `continued`, under the pair's left track.
     fn extend(
-        &self,
+        &mut self,
         mut track: Track3d,
         pair: Pair,
         points: &mut Vec<MatchedPoint>,
@@ -401,6 +409,8 @@ impl Tracks {
         // predictor too: scored only on what its prediction found, a track on a turning path
         // would never learn that its quadratic follows it better than its line.
         track.predictor.score(&pair.sample, None);
+        self.turns
+            .learn(&track, &pair.sample, self.config.rejoin_tolerance_px);
         points.push(MatchedPoint {
             track_id: track.id,
             ..pair.point
@@ -439,7 +449,14 @@ impl Tracks {
         points: &mut Vec<MatchedPoint>,
         continued: &mut BTreeMap<u64, Track3d>,
     ) -> usize {
-        let joins = rejoin::rejoin(&self.config, &self.limits, rect, &births, &orphans, t_s);
+        let turn = self.turns.per_frame();
+        let joins = rejoin::rejoin(
+            (&self.config, &self.limits, turn),
+            rect,
+            &births,
+            &orphans,
+            t_s,
+        );
         let rejoined = joins.iter().flatten().count();
         let mut orphans: Vec<Option<(Orphan, Track3d)>> = orphans.into_iter().map(Some).collect();
         for (birth, join) in births.into_iter().zip(joins) {

@@ -7,7 +7,6 @@ use nalgebra::Point3;
 
 use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig};
 use crate::geometry::{RectPoint, Rectification};
-use crate::link::TURN_PER_FRAME;
 use crate::spatial::{PointGrid, GRID_CELL_PX};
 use crate::velocity::fit::{fit_line, fit_quadratic};
 
@@ -30,13 +29,14 @@ struct Judge<'a> {
     config: &'a TrackConfig,
     limits: &'a Limits,
     rect: &'a Rectification,
+    /// How far per pixel of its step a path turns in a frame, learnt ([`super::turn`]).
+    turn_per_frame: f64,
 }
 
 /// For each new pair (`births`), the orphan it continues, if any: the continuation whose
 /// prediction the pair meets best, within the rejoin tolerances (one-to-one, closest first).
 pub(super) fn rejoin(
-    config: &TrackConfig,
-    limits: &Limits,
+    (config, limits, turn_per_frame): (&TrackConfig, &Limits, f64),
     rect: &Rectification,
     births: &[Pair],
     orphans: &[(Orphan, Track3d)],
@@ -49,6 +49,7 @@ pub(super) fn rejoin(
         config,
         limits,
         rect,
+        turn_per_frame,
     };
     let mut predictions = judge.predictions(orphans, t_s);
     let mut candidates = judge.predicted_candidates(births, &predictions);
@@ -177,7 +178,7 @@ impl Judge<'_> {
             let across_px = self
                 .config
                 .rejoin_tolerance_px
-                .max(TURN_PER_FRAME * p.step_px);
+                .max(self.turn_per_frame * p.step_px);
             for (_, b) in birth_grid.near(p.image.x, p.image.y, 2.0 * across_px) {
                 let sample = &births[*b].sample;
                 let c = cost(
