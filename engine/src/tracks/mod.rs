@@ -320,8 +320,7 @@ impl Tracks {
                 continue;
             };
             track.predictor.score(&sample, Some(miss_px));
-            self.turns
-                .learn(&track, &sample, self.config.rejoin_tolerance_px);
+            self.turns.learn(&track, &sample);
             // A particle hidden in one image was not matched: it is no stereo point.
             let to = if sample.separation == Separation::Hidden {
                 &mut *partial_points
@@ -409,8 +408,7 @@ impl Tracks {
         // predictor too: scored only on what its prediction found, a track on a turning path
         // would never learn that its quadratic follows it better than its line.
         track.predictor.score(&pair.sample, None);
-        self.turns
-            .learn(&track, &pair.sample, self.config.rejoin_tolerance_px);
+        self.turns.learn(&track, &pair.sample);
         points.push(MatchedPoint {
             track_id: track.id,
             ..pair.point
@@ -449,9 +447,8 @@ impl Tracks {
         points: &mut Vec<MatchedPoint>,
         continued: &mut BTreeMap<u64, Track3d>,
     ) -> usize {
-        let turn = self.turns.per_frame();
         let joins = rejoin::rejoin(
-            (&self.config, &self.limits, turn),
+            (&self.config, &self.limits, self.turns.per_frame()),
             rect,
             &births,
             &orphans,
