@@ -448,7 +448,7 @@ impl Tracks {
         continued: &mut BTreeMap<u64, Track3d>,
     ) -> usize {
         let joins = rejoin::rejoin(
-            (&self.config, &self.limits, self.turns.per_frame()),
+            (&self.config, &self.limits, &self.turns),
             rect,
             &births,
             &orphans,

@@ -5,6 +5,7 @@
 
 use nalgebra::Point3;
 
+use super::turn::Turns;
 use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig};
 use crate::geometry::{RectPoint, Rectification};
 use crate::spatial::{PointGrid, GRID_CELL_PX};
@@ -36,7 +37,7 @@ struct Judge<'a> {
 /// For each new pair (`births`), the orphan it continues, if any: the continuation whose
 /// prediction the pair meets best, within the rejoin tolerances (one-to-one, closest first).
 pub(super) fn rejoin(
-    (config, limits, turn_per_frame): (&TrackConfig, &Limits, f64),
+    (config, limits, turns): (&TrackConfig, &Limits, &Turns),
     rect: &Rectification,
     births: &[Pair],
     orphans: &[(Orphan, Track3d)],
@@ -49,7 +50,7 @@ pub(super) fn rejoin(
         config,
         limits,
         rect,
-        turn_per_frame,
+        turn_per_frame: turns.per_frame(),
     };
     let mut predictions = judge.predictions(orphans, t_s);
     let mut candidates = judge.predicted_candidates(births, &predictions);

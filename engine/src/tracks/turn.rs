@@ -43,10 +43,10 @@ impl Turns {
             return;
         }
         let ahead = (new.t_s - b.t_s) / (b.t_s - a.t_s);
-        let (step_x, step_y) = (b.left_rect.x - a.left_rect.x, b.left_rect.y - a.left_rect.y);
         if !ahead.is_finite() {
             return;
         }
+        let (step_x, step_y) = (b.left_rect.x - a.left_rect.x, b.left_rect.y - a.left_rect.y);
         let miss_sq = (new.left_rect.x - (b.left_rect.x + step_x * ahead)).powi(2)
             + (new.left_rect.y - (b.left_rect.y + step_y * ahead)).powi(2);
         self.steps
