@@ -191,9 +191,8 @@ pub(crate) fn learn_shape(
 fn fit_alone(samples: &[(f64, f64, f64)], seed: Member) -> Option<(Member, f64)> {
     let mut fit = step::Fit::new(seed, samples);
     let mut cost = f64::INFINITY;
-    let mut rows = Vec::with_capacity(samples.len());
     for _ in 0..MAX_ITERATIONS {
-        let stepped = fit.step(samples, &[], (Free::Shape, seed.shape.radius_px), &mut rows)?;
+        let stepped = fit.step(samples, &[], (Free::Shape, seed.shape.radius_px))?;
         cost = stepped.cost;
         if fit.member.left_reach_of(&seed) {
             return None;
@@ -707,15 +706,9 @@ mod tests {
             let samples = window(image, &[(truth.at, truth.shape.radius_px + MARGIN_PX)]);
             let mut fit = step::Fit::new(truth, &samples);
             let mut sigma = 0.0;
-            let mut rows = Vec::new();
             for _ in 0..MAX_ITERATIONS {
                 let stepped = fit
-                    .step(
-                        &samples,
-                        &[],
-                        (Free::Radius, truth.shape.radius_px),
-                        &mut rows,
-                    )
+                    .step(&samples, &[], (Free::Radius, truth.shape.radius_px))
                     .expect("fits");
                 sigma = stepped.centre_sigma_px;
             }

@@ -10,18 +10,6 @@ use super::{logistic_table, Floor, Free, InFit, Member, FLOOR_TERMS, RADIUS_RANG
 /// A step's unknowns at most: the floor's, then x, y, amplitude, radius and edge.
 const TERMS: usize = FLOOR_TERMS + 5;
 
-/// One pixel's row of a step's normal equations.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct Row {
-    /// The model's derivatives there: the floor's, then x, y, amplitude, radius and edge (zero
-    /// where not free, or beyond the particle's reach).
-    j: [f64; TERMS],
-    /// The grey level less the model before the step.
-    residual: f64,
-    /// Whether the particle's light reaches the pixel (else only the floor's terms count).
-    lit: bool,
-}
-
 /// A particle and the floor under it, as a fit leaves them.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Fit {
@@ -65,20 +53,16 @@ impl Fit {
     /// One step against `samples` (x, y, grey level) with `others`' light taken out, the
     /// radius and edge free as `free` says (a radius among neighbours kept within
     /// [`RADIUS_RANGE`] of `seed_radius_px`); `None` where the pixels do not pin the unknowns
-    /// (too few of them, or a singular system). `rows` is room for the pixels' rows, kept
-    /// across steps.
+    /// (too few of them, or a singular system).
     pub(super) fn step(
         &mut self,
         samples: &[(f64, f64, f64)],
         others: &[InFit],
         (free, seed_radius_px): (Free, f64),
-        rows: &mut Vec<Row>,
     ) -> Option<Stepped> {
         let (step, cost, centre_sigma_px) = match free {
-            Free::Shape => self.solve::<{ FLOOR_TERMS + 5 }>(samples, others, Free::Shape, rows)?,
-            Free::Radius => {
-                self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::Radius, rows)?
-            }
+            Free::Shape => self.solve::<{ FLOOR_TERMS + 5 }>(samples, others, Free::Shape)?,
+            Free::Radius => self.solve::<{ FLOOR_TERMS + 4 }>(samples, others, Free::Radius)?,
         };
         if step.iter().any(|v| !v.is_finite()) {
             return None;
@@ -118,31 +102,11 @@ impl Fit {
         samples: &[(f64, f64, f64)],
         others: &[InFit],
         free: Free,
-        rows: &mut Vec<Row>,
     ) -> Option<([f64; TERMS], f64, f64)> {
         if samples.len() <= 2 * N {
             return None;
         }
-        // The normal equations' lower triangle and right-hand side, summed by hand from the
-        // floor's block (the same at every step); a pixel beyond the particle's reach adds to
-        // the floor's right-hand side only.
-        let mut jtj = [[0.0; N]; N];
-        for (row, block) in jtj.iter_mut().zip(&self.floor_block) {
-            row[..FLOOR_TERMS].copy_from_slice(block);
-        }
-        let cost = self.rows_of(samples, others, free, rows);
-        let mut jtr = [0.0; N];
-        for row in rows.iter() {
-            match row.lit {
-                true => accumulate(&mut jtj, &mut jtr, &row.j, row.residual),
-                // A pixel beyond the particle's reach has only the floor's terms.
-                false => {
-                    for (r, j) in jtr.iter_mut().zip(&row.j[..FLOOR_TERMS]) {
-                        *r += row.residual * j;
-                    }
-                }
-            }
-        }
+        let (jtj, jtr, cost) = self.normal_equations::<N>(samples, others, free);
         let jtj = SMatrix::<f64, N, N>::from_fn(|a, b| jtj[a.max(b)][a.min(b)]);
         let jtr = SVector::<f64, N>::from(jtr);
         let factor = jtj.cholesky()?;
@@ -164,63 +128,57 @@ impl Fit {
         Some((step, cost, centre_sigma_px))
     }
 
-    /// Each pixel's row of the normal equations into `rows` (its residual before the step and
-    /// its Jacobian, the radius and edge's terms as `free` says), and the sum of the squared
-    /// residuals. Kept apart from their sums so that the model's evaluation at one pixel
-    /// overlaps the next one's.
+    /// The normal equations of a step over `samples` (the radius and edge's terms as `free`
+    /// says), each pixel's Jacobian row added as it is evaluated, and the sum of the squared
+    /// residuals before the step. Of the floor's block only the lower triangle is kept, summed
+    /// once ([`Fit::new`]); the particle's rows are full. A pixel beyond the particle's reach
+    /// has only the floor's terms, and adds to the right-hand side only.
     #[inline(always)]
-    fn rows_of(
+    fn normal_equations<const N: usize>(
         &self,
         samples: &[(f64, f64, f64)],
         others: &[InFit],
         free: Free,
-        rows: &mut Vec<Row>,
-    ) -> f64 {
+    ) -> ([[f64; N]; N], [f64; N], f64) {
         let table = logistic_table();
         let own = InFit::new(&self.member);
         let floor = &self.floor;
+        let mut jtj = [[0.0; N]; N];
+        for (row, block) in jtj.iter_mut().zip(&self.floor_block) {
+            row[..FLOOR_TERMS].copy_from_slice(block);
+        }
+        let mut jtr = [0.0; N];
         let mut cost = 0.0;
-        rows.clear();
         for &(x, y, v) in samples {
             let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
             let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
             model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            let at = own.at(table, (x, y));
-            if let Some(at) = at {
-                model += own.amplitude * at[4];
-            }
-            let residual = v - model;
+            let Some(at) = own.at(table, (x, y)) else {
+                let residual = v - model;
+                cost += residual * residual;
+                for (r, j) in jtr.iter_mut().zip([1.0, fx, fy]) {
+                    *r += residual * j;
+                }
+                continue;
+            };
+            let residual = v - (model + own.amplitude * at[4]);
             cost += residual * residual;
-            let mut j = [0.0; TERMS];
-            j[..FLOOR_TERMS].copy_from_slice(&[1.0, fx, fy]);
-            if let Some(at) = at {
-                j[FLOOR_TERMS..].copy_from_slice(&own.values(at, free));
-            }
-            rows.push(Row {
-                j,
-                residual,
-                lit: at.is_some(),
+            let values = own.values(at, free);
+            let j: [f64; N] = std::array::from_fn(|a| match a {
+                0 => 1.0,
+                1 => fx,
+                2 => fy,
+                _ => values[a - FLOOR_TERMS],
             });
-        }
-        cost
-    }
-}
-
-/// Adds one pixel's Jacobian row `j` and `residual` to the normal equations' lower triangle
-/// `jtj` (but its floor block, summed once: [`Fit::new`]) and right-hand side `jtr`.
-#[inline(always)]
-fn accumulate<const N: usize>(
-    jtj: &mut [[f64; N]; N],
-    jtr: &mut [f64; N],
-    j: &[f64; TERMS],
-    residual: f64,
-) {
-    for (a, &ja) in j[..N].iter().enumerate() {
-        jtr[a] += residual * ja;
-        if a >= FLOOR_TERMS {
-            for (b, &jb) in j[..=a].iter().enumerate() {
-                jtj[a][b] += ja * jb;
+            for (r, &ja) in jtr.iter_mut().zip(&j) {
+                *r += residual * ja;
+            }
+            for (row, &ja) in jtj[FLOOR_TERMS..].iter_mut().zip(&j[FLOOR_TERMS..]) {
+                for (m, &jb) in row.iter_mut().zip(&j) {
+                    *m += ja * jb;
+                }
             }
         }
+        (jtj, jtr, cost)
     }
 }

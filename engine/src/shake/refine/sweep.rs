@@ -4,7 +4,7 @@
 //! it) however many particles touch in a chain, and every particle is fitted once per sweep,
 //! not once in every group it belongs to.
 
-use super::step::{Fit, Row};
+use super::step::Fit;
 use super::{
     logistic_table, window, Free, InFit, Member, CONVERGED_STEP_PX, MARGIN_PX, MAX_ITERATIONS,
     SETTLED_STEP_IN_REACHES,
@@ -40,8 +40,6 @@ pub(super) struct Sweep {
     failed: Vec<bool>,
     /// The neighbours' models of the particle a step fits (a buffer kept across steps).
     others: Vec<InFit>,
-    /// The rows of a step's normal equations (a buffer kept across steps).
-    rows: Vec<Row>,
     /// Per particle, whether it is held where it was added (its light counts, it is not
     /// fitted).
     held: Vec<bool>,
@@ -193,7 +191,6 @@ impl Sweep {
             &self.samples[i],
             &others,
             (Free::Radius, seed.shape.radius_px),
-            &mut self.rows,
         );
         self.others = others;
         let Some(stepped) = stepped else {
