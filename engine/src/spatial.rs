@@ -2,6 +2,8 @@
 //! sort by x for band queries, medians, cost normalisation and the assignment of candidates.
 //! Each keeps a stage's cost proportional to what it looks at, not to every pair.
 
+use std::cmp::Ordering;
+
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::RectPoint;
@@ -22,8 +24,8 @@ pub enum Assignment {
     OneToOne,
 }
 
-/// Picks pairs `(row, column)` from candidate `(cost, row, column)` triples: cheapest first,
-/// ties broken by row and column, so that the outcome does not depend on the input order.
+/// Picks pairs `(row, column)` from candidate `(cost, row, column)` triples, in the order of
+/// [`cheapest_first`].
 /// Dense seeding gives tens of candidates per row, and most lose to a cheaper claim on their
 /// row or column: the candidates are taken in cheap batches, each batch sorted, and what the
 /// batches left undecided sorted next, so a sort never pays for candidates no pick would see.
@@ -33,21 +35,18 @@ pub(crate) fn assign(
     columns: usize,
     mode: Assignment,
 ) -> Vec<(usize, usize)> {
-    let cheaper = |a: &(f64, usize, usize), b: &(f64, usize, usize)| {
-        a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2))
-    };
     let batch = 2 * (rows + columns).max(1);
     let mut row_done = vec![false; rows];
     let mut column_done = vec![false; columns];
     let mut pairs = Vec::new();
     while !candidates.is_empty() {
         let rest = if candidates.len() > batch {
-            candidates.select_nth_unstable_by(batch - 1, cheaper);
+            candidates.select_nth_unstable_by(batch - 1, cheapest_first);
             candidates.split_off(batch)
         } else {
             Vec::new()
         };
-        candidates.sort_unstable_by(cheaper);
+        candidates.sort_unstable_by(cheapest_first);
         for &(_, r, c) in &candidates {
             pick((r, c), mode, (&mut row_done, &mut column_done), &mut pairs);
         }
@@ -60,6 +59,12 @@ pub(crate) fn assign(
     }
     pairs.sort_unstable();
     pairs
+}
+
+/// The order candidates `(cost, row, column)` are taken in: cheapest first, ties by row, then
+/// by column, so that the outcome does not depend on the order they were found in.
+pub(crate) fn cheapest_first(a: &(f64, usize, usize), b: &(f64, usize, usize)) -> Ordering {
+    a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2))
 }
 
 /// Takes candidate `(r, c)`, the cheapest left, as `mode` says: one to one where neither its
@@ -319,7 +324,7 @@ mod tests {
         columns: usize,
         mode: Assignment,
     ) -> Vec<(usize, usize)> {
-        candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        candidates.sort_by(cheapest_first);
         let (mut row_done, mut column_done) = (vec![false; rows], vec![false; columns]);
         let mut pairs = Vec::new();
         for (_, r, c) in candidates {

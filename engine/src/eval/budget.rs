@@ -20,7 +20,7 @@ use serde::Serialize;
 use super::{associate, EvalOptions, Measurable, TrackRow};
 use crate::geometry::{PixelPoint, StereoRig};
 use crate::pipeline::{FrameOutput, MatchedPoint};
-use crate::spatial::median;
+use crate::spatial::{assign, median, Assignment};
 use crate::synth::TruthRow;
 
 /// What the pipeline made of one frame, as far as the loss budget needs it.
@@ -336,7 +336,8 @@ fn claim_points(
 }
 
 /// Each visible truth particle (its `images`) paired with at most one of `found` (images of
-/// detections or points) and vice versa, nearest first by `near` (`None`: too far).
+/// detections or points) and vice versa, nearest first by `near` (`None`: too far), into
+/// `claims` (none claimed before).
 fn claim_nearest(
     images: &[Option<[PixelPoint; 2]>],
     found: &[[PixelPoint; 2]],
@@ -352,13 +353,8 @@ fn claim_nearest(
             }
         }
     }
-    pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-    let mut taken = vec![false; found.len()];
-    for (_, ti, di) in pairs {
-        if claims[ti].is_none() && !taken[di] {
-            claims[ti] = Some(di);
-            taken[di] = true;
-        }
+    for (ti, di) in assign(pairs, images.len(), found.len(), Assignment::OneToOne) {
+        claims[ti] = Some(di);
     }
 }
 

@@ -12,6 +12,7 @@ use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
 use crate::field::FieldSample;
+use crate::spatial::cheapest_first;
 use crate::synth::TruthRow;
 use crate::VelocityVector;
 
@@ -431,7 +432,7 @@ fn associate(
             }
             matched.ghosts += usize::from(!near);
         }
-        pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        pairs.sort_by(cheapest_first);
         let mut row_done = vec![false; rows.len()];
         let mut truth_done = vec![false; candidates.len()];
         for (_, ri, ti) in pairs {

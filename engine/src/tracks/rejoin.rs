@@ -8,7 +8,7 @@ use nalgebra::Point3;
 use super::turn::Turns;
 use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig};
 use crate::geometry::{RectPoint, Rectification};
-use crate::spatial::{PointGrid, GRID_CELL_PX};
+use crate::spatial::{cheapest_first, PointGrid, GRID_CELL_PX};
 use crate::velocity::fit::{fit_line, fit_quadratic};
 
 /// A rejoin: the orphan a new pair continues and, for a one-sample orphan, the one-sample orphan
@@ -246,7 +246,7 @@ fn assign(
     births: usize,
     orphans: usize,
 ) -> Vec<Option<Join>> {
-    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    candidates.sort_by(cheapest_first);
     let mut rejoined = vec![None; births];
     let mut taken = vec![false; orphans];
     for (_, b, h) in candidates {
