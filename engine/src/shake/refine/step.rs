@@ -126,8 +126,9 @@ impl Fit {
     /// The normal equations of a step over `samples` (the radius and edge's terms as `free`
     /// says), each pixel's Jacobian row added as it is evaluated, and the sum of the squared
     /// residuals before the step. Of the floor's block only the lower triangle is kept, summed
-    /// once ([`Fit::new`]); the particle's rows are full. A pixel beyond the particle's reach
-    /// has only the floor's terms, and adds to the right-hand side only.
+    /// once ([`Fit::new`]); the particle's rows are summed whole, as whole rows vectorise (their
+    /// part above the diagonal is not read). A pixel beyond the particle's reach has only the
+    /// floor's terms, and adds to the right-hand side only.
     #[inline(always)]
     fn normal_equations<const N: usize>(
         &self,
