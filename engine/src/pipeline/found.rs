@@ -19,10 +19,36 @@ use crate::{ImageView, StereoFrame};
 /// A prediction and the feature it claimed in each image (left, right), if any.
 type Looked = (usize, [Option<usize>; 2]);
 
+/// What the predictions found (index for index with `looked`, `None` where the measurement did
+/// not confirm the particle); the features of those not confirmed are left to the per-camera
+/// chain, which may still pair them.
+fn release_unconfirmed(
+    looked: &[Looked],
+    found: Vec<Option<FoundSample>>,
+    shaken: &mut Shaken,
+) -> Vec<FoundSample> {
+    let mut confirmed = Vec::with_capacity(found.len());
+    for (&(_, [l, r]), found) in looked.iter().zip(found) {
+        match found {
+            Some(sample) => confirmed.push(sample),
+            None => {
+                if let Some(l) = l {
+                    shaken.claimed_left[l] = false;
+                }
+                if let Some(r) = r {
+                    shaken.claimed_right[r] = false;
+                }
+            }
+        }
+    }
+    confirmed
+}
+
 impl Pipeline {
     /// Continues the tracks whose predicted particles were measured in both images on rows
     /// within `band_px` of each other (or in one, with a partial sample), and marks every
-    /// claimed detection as continuing a track.
+    /// claimed detection as continuing a track; a prediction whose measurement did not confirm
+    /// its particle leaves the detections it claimed to the per-camera chain.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn take_found(
         &mut self,
@@ -30,7 +56,7 @@ impl Pipeline {
         seq: u64,
         (left, right): (&CameraOutput, &CameraOutput),
         predictions: &[Prediction],
-        shaken: &Shaken,
+        shaken: &mut Shaken,
         band_px: f64,
         out: &mut FrameOutput,
     ) {
@@ -45,10 +71,10 @@ impl Pipeline {
         } else {
             self.measure_looked(frame, (left, right), predictions, &looked, out)
         };
-        let found: Vec<_> = looked
+        let found: Vec<Option<FoundSample>> = looked
             .iter()
             .zip(measured)
-            .filter_map(|(&(i, features), measured)| {
+            .map(|(&(i, features), measured)| {
                 let p = &predictions[i];
                 let spots = self.spots(left, right, features, measured, out);
                 // A particle hidden in one image continues its track for at most M frames in a
@@ -79,13 +105,14 @@ impl Pipeline {
             })
             .collect();
         out.stats.predicted = predictions.len();
-        out.stats.found = found.len();
-        self.tracks
-            .take_found(found, (&mut out.points, &mut out.partial_points));
         out.continued_left = left.continued(out.detections_left.len(), &shaken.claimed_left);
         out.continued_right = right.continued(out.detections_right.len(), &shaken.claimed_right);
         out.stats.linked_left = out.continued_left.iter().filter(|c| **c).count();
         out.stats.linked_right = out.continued_right.iter().filter(|c| **c).count();
+        let found = release_unconfirmed(&looked, found, shaken);
+        out.stats.found = found.len();
+        self.tracks
+            .take_found(found, (&mut out.points, &mut out.partial_points));
     }
 
     /// Where a looked-for particle is seen in each image: at its claimed feature as detected,

@@ -186,13 +186,13 @@ impl Pipeline {
             .learnt_search()
             .unwrap_or(self.stereo_search)
             .epipolar_band_px;
-        let shaken = shake::find(&predictions, &left.linked, &right.linked, band_px);
+        let mut shaken = shake::find(&predictions, &left.linked, &right.linked, band_px);
         self.take_found(
             frame,
             seq,
             (&left, &right),
             &predictions,
-            &shaken,
+            &mut shaken,
             band_px,
             &mut out,
         );

@@ -8,8 +8,10 @@
 //! ([`crate::Detector::separate_expected`]); [`refine`] measures the found particles whose
 //! images still overlap with the shapes their tracks learnt.
 //!
-//! A track found in one image only claims that detection (it is explained, and must not pair
-//! with another particle's), and [`refine`] looks for its particle in the other image itself.
+//! A track found in one image only is looked for again in the other where the first image's
+//! detection puts it (a track that missed its path misses it alike in both images); one still
+//! found in one image only claims that detection (it is explained, and must not pair with
+//! another particle's), and [`refine`] looks for its particle in the other image itself.
 //! A track found in neither coasts: a particle neither detector saw near its projections is not
 //! looked for by fits alone, as fits free to take light wherever it lies keep a ghost (a wrong
 //! pair, a room's texture) going on light no particle made. A track carried by its
@@ -106,6 +108,17 @@ pub(crate) fn find(
     }
     let left_single = claim_single(&left_near, &done, &mut shaken.claimed_left);
     let right_single = claim_single(&right_near, &done, &mut shaken.claimed_right);
+    let again = look_again(
+        predictions,
+        [left, right],
+        [&left_single, &right_single],
+        band_px,
+        [&mut shaken.claimed_left, &mut shaken.claimed_right],
+    );
+    for f in again {
+        done[f.prediction] = true;
+        shaken.found.push(f);
+    }
     shaken.partial = (0..predictions.len())
         .filter(|&i| !done[i])
         .map(|i| (i, [left_single[i], right_single[i]]))
@@ -141,6 +154,75 @@ fn near_each(
                 .collect()
         })
         .collect()
+}
+
+/// Predictions found in one image only (`singles`, per camera: the feature each claimed there)
+/// looked for again in the other image where the first image's feature puts them: on its row
+/// (the rectified rows of one particle agree), and as far along it from the projection there
+/// as the first feature lies from its own projection, within the prediction's gate. A track's
+/// miss of its path (a turn, a speed change) moves its particle alike in both images; what
+/// differs between them is its error in depth. Settled cheapest first, each free feature once;
+/// the features found are claimed.
+fn look_again(
+    predictions: &[Prediction],
+    features: [&[LinkedFeature]; 2],
+    singles: [&[Option<usize>]; 2],
+    band_px: f64,
+    claimed: [&mut [bool]; 2],
+) -> Vec<Found> {
+    let grids = features.map(|fs| {
+        PointGrid::new(
+            fs.iter()
+                .enumerate()
+                .filter(|(_, f)| !f.fixed)
+                .map(|(i, f)| (f.feature.rect, i)),
+            GRID_CELL_PX,
+        )
+    });
+    // (squared distance from the shifted projection, prediction, [left, right] features,
+    // squared miss of the first image's feature)
+    let mut candidates: Vec<(f64, usize, [usize; 2], f64)> = Vec::new();
+    for (i, p) in predictions.iter().enumerate() {
+        let (c, seen) = match (singles[0][i], singles[1][i]) {
+            (Some(l), None) => (0, l),
+            (None, Some(r)) => (1, r),
+            _ => continue,
+        };
+        let at = features[c][seen].feature.rect;
+        let (own, other) = (p.at(c), p.at(1 - c));
+        let shifted = (other.x + at.x - own.x, other.y + at.y - own.y);
+        let seen_sq = (at.x - own.x).powi(2) + (at.y - own.y).powi(2);
+        for &(q, j) in grids[1 - c].near(shifted.0, shifted.1, p.gate_px) {
+            let d_sq = (q.x - shifted.0).powi(2) + (q.y - shifted.1).powi(2);
+            if claimed[1 - c][j] || d_sq > p.gate_px * p.gate_px || (q.y - at.y).abs() > band_px {
+                continue;
+            }
+            let pair = if c == 0 { [seen, j] } else { [j, seen] };
+            candidates.push((d_sq, i, pair, seen_sq));
+        }
+    }
+    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then((a.1, a.2).cmp(&(b.1, b.2))));
+    let mut done = vec![false; predictions.len()];
+    let mut found = Vec::new();
+    for (_, i, [l, r], seen_sq) in candidates {
+        let c = usize::from(singles[0][i].is_none());
+        let other = [l, r][1 - c];
+        if done[i] || claimed[1 - c][other] {
+            continue;
+        }
+        done[i] = true;
+        claimed[1 - c][other] = true;
+        let p = &predictions[i];
+        let q = features[1 - c][other].feature.rect;
+        let miss_sq = (q.x - p.at(1 - c).x).powi(2) + (q.y - p.at(1 - c).y).powi(2);
+        found.push(Found {
+            prediction: i,
+            left: l,
+            right: r,
+            miss_px: (seen_sq + miss_sq).sqrt(),
+        });
+    }
+    found
 }
 
 /// Predictions found in one image only claim their nearest free feature there: per
@@ -250,6 +332,45 @@ mod tests {
         );
         assert!(s.found.is_empty());
         assert_eq!(s.partial, [(0, [None, Some(0)])], "the second coasts");
+    }
+
+    #[test]
+    fn a_track_that_missed_its_path_is_found_where_its_first_image_puts_it() {
+        // The particle turned off its predicted path: its left feature lies 1.5 px from the
+        // left projection (within the gate of 2 px), its right one 3 px from the right
+        // projection (beyond the gate), 1.5 px from where the left offset puts it.
+        let predictions = [prediction(1, 10.0, 0.0, 5.0)];
+        let left = [feature(11.5, 5.0)];
+        let right = [feature(3.0, 5.0)];
+        let s = find(&predictions, &left, &right, 2.0);
+        assert_eq!(s.found.len(), 1, "{s:?}");
+        assert_eq!((s.found[0].left, s.found[0].right), (0, 0));
+        assert!((s.found[0].miss_px - (1.5f64.powi(2) + 3.0f64.powi(2)).sqrt()).abs() < 1e-12);
+        assert!(s.partial.is_empty());
+        assert_eq!((s.claimed_left, s.claimed_right), (vec![true], vec![true]));
+    }
+
+    #[test]
+    fn a_second_look_keeps_to_the_row_and_to_free_features() {
+        let predictions = [prediction(1, 10.0, 0.0, 5.0)];
+        let left = [feature(11.5, 5.0)];
+        // Within the gate of the shifted projection, but on a row 1.9 px from the left
+        // feature's, outside a band of 1 px: another particle.
+        let s = find(&predictions, &left, &[feature(1.5, 6.9)], 1.0);
+        assert!(s.found.is_empty());
+        assert_eq!(s.partial, [(0, [Some(0), None])]);
+        // Two tracks, the first found in both images; the second's shifted projection lands on
+        // the first's right feature, which is not free.
+        let predictions = [
+            prediction(1, 10.0, 0.0, 5.0),
+            prediction(2, 20.0, -3.0, 5.0),
+        ];
+        let left = [feature(10.0, 5.0), feature(21.5, 5.0)];
+        let right = [feature(0.0, 5.0)];
+        let s = find(&predictions, &left, &right, 2.0);
+        assert_eq!(s.found.len(), 1);
+        assert_eq!(s.found[0].prediction, 0);
+        assert_eq!(s.partial, [(1, [Some(1), None])]);
     }
 
     #[test]
