@@ -65,8 +65,9 @@ pub struct VelocityConfig {
     /// deviation plus `outlier_noise_fraction` of their median speed, where the neighbours
     /// agree in every component to within `outlier_coherence` of their speed, beyond what
     /// their own stated noise spreads them by (universal outlier detection, Westerweel &
-    /// Scarano 2005; [`outliers::neighbour_outliers`]). Catches what
-    /// each track's own smoothness cannot:
+    /// Scarano 2005; [`outliers::neighbour_outliers`]); wherever they stand, a vector off their
+    /// median by more than `outlier_threshold` times their speed, spread and its own stated
+    /// error together is dropped too. Catches what each track's own smoothness cannot:
     /// a wrong stereo pair or a swapped particle that moves smoothly, but not with the flow.
     /// 0: off (the method).
     pub outlier_neighbours: usize,

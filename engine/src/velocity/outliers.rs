@@ -32,7 +32,9 @@ pub struct NeighbourTest {
 /// For each vector (position, velocity, its stated 1-sigma error per component), whether it
 /// strays from its neighbours by the test:
 /// a wrong stereo pair or a track that swapped particles gives a velocity its neighbours do not
-/// share, however smooth its own path. Deterministic whatever the input order of equidistant
+/// share, however smooth its own path. Where the neighbours do not agree well enough to be
+/// asked component by component, a vector is still an outlier where it is off their median by
+/// more than the threshold times their speed, their spread and its own stated error together. Deterministic whatever the input order of equidistant
 /// points' ties (broken by index); fewer than `neighbours + 1` vectors are not tested.
 pub fn neighbour_outliers(
     vectors: &[(Point3<f64>, Vector3<f64>, Vector3<f64>)],
@@ -47,7 +49,7 @@ pub fn neighbour_outliers(
     let grid = Grid3::new(&positions);
     let mut nearest: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
     let mut component = vec![0.0; k];
-    for (i, &(_, velocity, _)) in vectors.iter().enumerate() {
+    for (i, &(_, velocity, sigma)) in vectors.iter().enumerate() {
         grid.nearest(&positions, i, k, &mut nearest);
         let mut centre = Vector3::zeros();
         let mut spread = Vector3::zeros();
@@ -68,11 +70,18 @@ pub fn neighbour_outliers(
         };
         let floor = test.coherence * speed;
         let coherent = (0..3).all(|c| spread[c] < floor || spread[c] < floor + noise(c));
-        outliers[i] = coherent
+        let strays = coherent
             && (0..3).any(|c| {
                 (velocity[c] - centre[c]).abs()
                     > test.threshold * (spread[c] + test.noise_fraction * speed)
             });
+        // Wherever the neighbours stand, agreeing or not, a vector off their median by more
+        // than the threshold times all the motion they show (their speed and spread) and its
+        // own stated error is none of theirs: a track that took a ghost's samples into its
+        // window, metres per second in a flow of centimetres.
+        let wild =
+            (velocity - centre).norm() > test.threshold * (speed + spread.norm() + sigma.norm());
+        outliers[i] = strays || wild;
     }
     outliers
 }
@@ -358,6 +367,18 @@ mod tests {
         // so a vector 40 % off its neighbours' median is not called an outlier.
         let mut field = field_with(Vector3::repeat(0.3), Vector3::repeat(0.01));
         field[20].1.z -= 0.4;
+        assert!(flagged(&field).is_empty());
+    }
+
+    #[test]
+    fn a_wild_vector_is_an_outlier_among_neighbours_that_disagree() {
+        // Neighbours 30 % apart as above (not asked component by component); a vector off
+        // their median by ten times their speed, with a small stated error (a track whose
+        // window took a ghost's samples), is found; stated as that uncertain, it is not.
+        let mut field = field_with(Vector3::repeat(0.3), Vector3::repeat(0.01));
+        field[20].1 += Vector3::new(10.0, 6.0, -5.0);
+        assert_eq!(flagged(&field), [20]);
+        field[20].2 = Vector3::repeat(4.0);
         assert!(flagged(&field).is_empty());
     }
 
