@@ -38,6 +38,13 @@ pub struct RectPoint {
     pub y: f64,
 }
 
+impl RectPoint {
+    /// The squared distance to `other`, rectified pixels squared.
+    pub(crate) fn distance_sq(self, other: RectPoint) -> f64 {
+        (self.x - other.x).powi(2) + (self.y - other.y).powi(2)
+    }
+}
+
 /// What is wrong with a calibration, naming the offending field.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum CalibrationError {

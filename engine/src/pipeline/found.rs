@@ -87,9 +87,8 @@ impl Pipeline {
                 if (spots[0].rect.y - spots[1].rect.y).abs() > band_px {
                     return None;
                 }
-                let miss_px = (distance_sq(spots[0].rect, p.left)
-                    + distance_sq(spots[1].rect, p.right))
-                .sqrt();
+                let miss_px =
+                    (spots[0].rect.distance_sq(p.left) + spots[1].rect.distance_sq(p.right)).sqrt();
                 let (sample, point) = self.sample_at(frame, seq, spots)?;
                 let camera_tracks = match features {
                     [Some(l), Some(r)] => Some((left.linked[l].track_id, right.linked[r].track_id)),
@@ -367,10 +366,6 @@ fn seen_by(camera: &CameraOutput, detections: &[Detection]) -> Vec<refine::Seen>
             }
         })
         .collect()
-}
-
-fn distance_sq(a: RectPoint, b: RectPoint) -> f64 {
-    (a.x - b.x).powi(2) + (a.y - b.y).powi(2)
 }
 
 #[cfg(test)]

@@ -20,9 +20,10 @@
 
 pub(crate) mod refine;
 
+use crate::geometry::RectPoint;
 use crate::link::LinkedFeature;
 use crate::predict::Prediction;
-use crate::spatial::{PointGrid, GRID_CELL_PX};
+use crate::spatial::{assign, Assignment, PointGrid, GRID_CELL_PX};
 
 /// A predicted particle found in both images.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -179,50 +180,54 @@ fn look_again(
             GRID_CELL_PX,
         )
     });
-    // (squared distance from the shifted projection, prediction, [left, right] features,
-    // squared miss of the first image's feature)
-    let mut candidates: Vec<(f64, usize, [usize; 2], f64)> = Vec::new();
+    // The camera each prediction was seen in and the feature it claimed there.
+    let seen_in = |i: usize| match (singles[0][i], singles[1][i]) {
+        (Some(l), None) => Some((0, l)),
+        (None, Some(r)) => Some((1, r)),
+        _ => None,
+    };
+    // Candidates (squared distance from the shifted projection, prediction, the other camera's
+    // feature), the right image's features numbered after the left's so that one assignment
+    // settles both cameras.
+    let offset = [0, features[0].len()];
+    let mut candidates: Vec<(f64, usize, usize)> = Vec::new();
     for (i, p) in predictions.iter().enumerate() {
-        let (c, seen) = match (singles[0][i], singles[1][i]) {
-            (Some(l), None) => (0, l),
-            (None, Some(r)) => (1, r),
-            _ => continue,
+        let Some((c, seen)) = seen_in(i) else {
+            continue;
         };
         let at = features[c][seen].feature.rect;
         let (own, other) = (p.at(c), p.at(1 - c));
-        let shifted = (other.x + at.x - own.x, other.y + at.y - own.y);
-        let seen_sq = (at.x - own.x).powi(2) + (at.y - own.y).powi(2);
-        for &(q, j) in grids[1 - c].near(shifted.0, shifted.1, p.gate_px) {
-            let d_sq = (q.x - shifted.0).powi(2) + (q.y - shifted.1).powi(2);
-            if claimed[1 - c][j] || d_sq > p.gate_px * p.gate_px || (q.y - at.y).abs() > band_px {
-                continue;
+        let shifted = RectPoint {
+            x: other.x + at.x - own.x,
+            y: other.y + at.y - own.y,
+        };
+        for &(q, j) in grids[1 - c].near(shifted.x, shifted.y, p.gate_px) {
+            let d_sq = q.distance_sq(shifted);
+            if !claimed[1 - c][j] && d_sq <= p.gate_px * p.gate_px && (q.y - at.y).abs() <= band_px
+            {
+                candidates.push((d_sq, i, offset[1 - c] + j));
             }
-            let pair = if c == 0 { [seen, j] } else { [j, seen] };
-            candidates.push((d_sq, i, pair, seen_sq));
         }
     }
-    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then((a.1, a.2).cmp(&(b.1, b.2))));
-    let mut done = vec![false; predictions.len()];
-    let mut found = Vec::new();
-    for (_, i, [l, r], seen_sq) in candidates {
-        let c = usize::from(singles[0][i].is_none());
-        let other = [l, r][1 - c];
-        if done[i] || claimed[1 - c][other] {
-            continue;
-        }
-        done[i] = true;
-        claimed[1 - c][other] = true;
-        let p = &predictions[i];
-        let q = features[1 - c][other].feature.rect;
-        let miss_sq = (q.x - p.at(1 - c).x).powi(2) + (q.y - p.at(1 - c).y).powi(2);
-        found.push(Found {
-            prediction: i,
-            left: l,
-            right: r,
-            miss_px: (seen_sq + miss_sq).sqrt(),
-        });
-    }
-    found
+    let columns = features[0].len() + features[1].len();
+    assign(candidates, predictions.len(), columns, Assignment::OneToOne)
+        .into_iter()
+        .filter_map(|(i, column)| {
+            let (c, seen) = seen_in(i)?;
+            let other = column - offset[1 - c];
+            claimed[1 - c][other] = true;
+            let p = &predictions[i];
+            let miss_sq = features[c][seen].feature.rect.distance_sq(p.at(c))
+                + features[1 - c][other].feature.rect.distance_sq(p.at(1 - c));
+            let [left, right] = if c == 0 { [seen, other] } else { [other, seen] };
+            Some(Found {
+                prediction: i,
+                left,
+                right,
+                miss_px: miss_sq.sqrt(),
+            })
+        })
+        .collect()
 }
 
 /// Predictions found in one image only claim their nearest free feature there: per
