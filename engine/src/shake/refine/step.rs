@@ -128,7 +128,10 @@ impl Fit {
     /// residuals before the step. Of the floor's block only the lower triangle is kept, summed
     /// once ([`Fit::new`]); the particle's rows are summed whole, as whole rows vectorise (their
     /// part above the diagonal is not read). A pixel beyond the particle's reach has only the
-    /// floor's terms, and adds to the right-hand side only.
+    /// floor's terms, and adds to the right-hand side only. The pixels go in chunks, each in
+    /// three passes (the neighbours' light, the particle's own terms, the sums): a pixel's
+    /// square root, table lookups and division are a long chain, and a short loop of pixels
+    /// that do not depend on each other lets the processor run many such chains at once.
     #[inline(always)]
     fn normal_equations<const N: usize>(
         &self,
@@ -136,47 +139,100 @@ impl Fit {
         others: &[InFit],
         free: Free,
     ) -> ([[f64; N]; N], [f64; N], f64) {
-        let table = logistic_table();
-        let own = InFit::new(&self.member);
-        let floor = &self.floor;
         let mut jtj = [[0.0; N]; N];
         for (row, block) in jtj.iter_mut().zip(&self.floor_block) {
             row[..FLOOR_TERMS].copy_from_slice(block);
         }
         let mut jtr = [0.0; N];
         let mut cost = 0.0;
-        for &(x, y, v) in samples {
-            let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
-            let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
-            model += others.iter().map(|o| o.light(table, (x, y))).sum::<f64>();
-            let Some(at) = own.at(table, (x, y)) else {
-                let residual = v - model;
-                cost += residual * residual;
-                for (r, j) in jtr.iter_mut().zip([1.0, fx, fy]) {
-                    *r += residual * j;
+        let mut terms = [PixelTerms::default(); CHUNK];
+        for chunk in samples.chunks(CHUNK) {
+            let terms = &mut terms[..chunk.len()];
+            self.pixel_terms(chunk, others, free, terms);
+            for t in terms.iter() {
+                cost += t.residual * t.residual;
+                if !t.lit {
+                    for (r, j) in jtr.iter_mut().zip([1.0, t.fx, t.fy]) {
+                        *r += t.residual * j;
+                    }
+                    continue;
                 }
-                continue;
-            };
-            let residual = v - (model + own.amplitude * at[4]);
-            cost += residual * residual;
-            let values = own.values(at, free);
-            let j: [f64; N] = std::array::from_fn(|a| match a {
-                0 => 1.0,
-                1 => fx,
-                2 => fy,
-                _ => values[a - FLOOR_TERMS],
-            });
-            for (r, &ja) in jtr.iter_mut().zip(&j) {
-                *r += residual * ja;
-            }
-            for (row, &ja) in jtj[FLOOR_TERMS..].iter_mut().zip(&j[FLOOR_TERMS..]) {
-                for (m, &jb) in row.iter_mut().zip(&j) {
-                    *m += ja * jb;
+                let j: [f64; N] = std::array::from_fn(|a| match a {
+                    0 => 1.0,
+                    1 => t.fx,
+                    2 => t.fy,
+                    _ => t.values[a - FLOOR_TERMS],
+                });
+                for (r, &ja) in jtr.iter_mut().zip(&j) {
+                    *r += t.residual * ja;
+                }
+                for (row, &ja) in jtj[FLOOR_TERMS..].iter_mut().zip(&j[FLOOR_TERMS..]) {
+                    for (m, &jb) in row.iter_mut().zip(&j) {
+                        *m += ja * jb;
+                    }
                 }
             }
         }
         (jtj, jtr, cost)
     }
+
+    /// Each pixel's terms of a chunk (`terms`, index for index with `chunk`): its position about
+    /// the floor's centre, its residual under the model (the floor, `others`' light and the
+    /// particle's), and where the particle's light reaches it, its Jacobian values.
+    #[inline(always)]
+    fn pixel_terms(
+        &self,
+        chunk: &[(f64, f64, f64)],
+        others: &[InFit],
+        free: Free,
+        terms: &mut [PixelTerms],
+    ) {
+        let table = logistic_table();
+        let own = InFit::new(&self.member);
+        let floor = &self.floor;
+        let mut light = [0.0; CHUNK];
+        for o in others {
+            for (l, &(x, y, _)) in light.iter_mut().zip(chunk) {
+                *l += o.light(table, (x, y));
+            }
+        }
+        for ((t, &(x, y, v)), &light) in terms.iter_mut().zip(chunk).zip(&light) {
+            let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
+            let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
+            model += light;
+            *t = match own.at(table, (x, y)) {
+                None => PixelTerms {
+                    fx,
+                    fy,
+                    residual: v - model,
+                    lit: false,
+                    values: [0.0; 5],
+                },
+                Some(at) => PixelTerms {
+                    fx,
+                    fy,
+                    residual: v - (model + own.amplitude * at[4]),
+                    lit: true,
+                    values: own.values(at, free),
+                },
+            };
+        }
+    }
+}
+
+/// Pixels a step evaluates in one go ([`Fit::normal_equations`]).
+const CHUNK: usize = 32;
+
+/// One pixel's part in a step: its position about the floor's centre, its residual before the
+/// step, whether the particle's light reaches it, and if so the particle's Jacobian values
+/// (x, y, amplitude, radius, edge).
+#[derive(Debug, Clone, Copy, Default)]
+struct PixelTerms {
+    fx: f64,
+    fy: f64,
+    residual: f64,
+    lit: bool,
+    values: [f64; 5],
 }
 
 /// Element `k` of the diagonal of `(L Lt)^-1`, `l` holding the Cholesky factor `L` in its lower
