@@ -150,6 +150,10 @@ impl Prediction {
     }
 }
 
+/// Tracks per parallel task: a track's prediction takes about a microsecond, and a task
+/// handed to the other core pays for its waking.
+pub(super) const TRACKS_PER_TASK: usize = 128;
+
 /// Predicts every live track (unseen for at most `max_gap_frames`) of at least
 /// [`MIN_SAMPLES`] samples, or of fewer that moves as its neighbours do, at frame `seq`, time
 /// `t_s`, seen from pose `world_from_rig`. A track with no miss sigma of its own uses the
@@ -171,9 +175,11 @@ pub(crate) fn predict<'a>(
         .collect();
     let views: Vec<&Track3d> = recent.iter().map(|(_, t)| &**t).collect();
     let neighbours = Neighbours::of(&views, MIN_SAMPLES);
-    // Each track predicts on its own: both cores, in the tracks' order.
+    // Each track predicts on its own: both cores where they hold tracks enough (see
+    // [`TRACKS_PER_TASK`]), in the tracks' order.
     let predicted: Vec<(Prediction, Option<f64>)> = recent
         .into_par_iter()
+        .with_min_len(TRACKS_PER_TASK)
         .enumerate()
         .filter_map(|(i, (key, track))| {
             let p = predict_one(track, i, &neighbours, (seq, t_s))?;

@@ -41,9 +41,11 @@ pub(super) struct Neighbours {
 impl Neighbours {
     /// The motion of those of `tracks` with at least `mature` samples, indexed by their order.
     pub(super) fn of(tracks: &[&Track3d], mature: usize) -> Self {
-        // Each track's motion and stray on its own: both cores, in the tracks' order.
+        // Each track's motion and stray on its own: both cores where they hold tracks enough,
+        // in the tracks' order.
         let motions: Vec<_> = tracks
             .par_iter()
+            .with_min_len(super::TRACKS_PER_TASK)
             .map(|track| {
                 (track.samples.len() >= mature)
                     .then(|| {
@@ -73,6 +75,7 @@ impl Neighbours {
         };
         let strays: Vec<[f64; 2]> = seen
             .par_iter()
+            .with_min_len(super::TRACKS_PER_TASK)
             .filter_map(|&(i, last, v)| {
                 Some(stray(last, v - neighbours.flow_at(last.left_rect, i)?))
             })
