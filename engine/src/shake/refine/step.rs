@@ -124,7 +124,7 @@ impl Fit {
     }
 
     /// The normal equations of a step over `samples` (the radius and edge's terms as `free`
-    /// says), each pixel's Jacobian row added as it is evaluated, and the sum of the squared
+    /// says), each pixel's Jacobian row added in turn, and the sum of the squared
     /// residuals before the step. Of the floor's block only the lower triangle is kept, summed
     /// once ([`Fit::new`]); the particle's rows are summed whole, as whole rows vectorise (their
     /// part above the diagonal is not read). A pixel beyond the particle's reach has only the
@@ -145,23 +145,24 @@ impl Fit {
         }
         let mut jtr = [0.0; N];
         let mut cost = 0.0;
+        let (table, own) = (logistic_table(), InFit::new(&self.member));
         let mut terms = [PixelTerms::default(); CHUNK];
         for chunk in samples.chunks(CHUNK) {
             let terms = &mut terms[..chunk.len()];
-            self.pixel_terms(chunk, others, free, terms);
+            self.pixel_terms(chunk, (table, &own), others, free, terms);
             for t in terms.iter() {
                 cost += t.residual * t.residual;
-                if !t.lit {
+                let Some(values) = t.values else {
                     for (r, j) in jtr.iter_mut().zip([1.0, t.fx, t.fy]) {
                         *r += t.residual * j;
                     }
                     continue;
-                }
+                };
                 let j: [f64; N] = std::array::from_fn(|a| match a {
                     0 => 1.0,
                     1 => t.fx,
                     2 => t.fy,
-                    _ => t.values[a - FLOOR_TERMS],
+                    _ => values[a - FLOOR_TERMS],
                 });
                 for (r, &ja) in jtr.iter_mut().zip(&j) {
                     *r += t.residual * ja;
@@ -178,17 +179,17 @@ impl Fit {
 
     /// Each pixel's terms of a chunk (`terms`, index for index with `chunk`): its position about
     /// the floor's centre, its residual under the model (the floor, `others`' light and the
-    /// particle's), and where the particle's light reaches it, its Jacobian values.
+    /// particle's, `own`, looked up in `table`), and where the particle's light reaches it, its
+    /// Jacobian values.
     #[inline(always)]
     fn pixel_terms(
         &self,
         chunk: &[(f64, f64, f64)],
+        (table, own): (&[f64], &InFit),
         others: &[InFit],
         free: Free,
         terms: &mut [PixelTerms],
     ) {
-        let table = logistic_table();
-        let own = InFit::new(&self.member);
         let floor = &self.floor;
         let mut light = [0.0; CHUNK];
         for o in others {
@@ -198,22 +199,19 @@ impl Fit {
         }
         for ((t, &(x, y, v)), &light) in terms.iter_mut().zip(chunk).zip(&light) {
             let (fx, fy) = (x - floor.centre.0, y - floor.centre.1);
-            let mut model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy;
-            model += light;
+            let model = floor.level + floor.slope.0 * fx + floor.slope.1 * fy + light;
             *t = match own.at(table, (x, y)) {
                 None => PixelTerms {
                     fx,
                     fy,
                     residual: v - model,
-                    lit: false,
-                    values: [0.0; 5],
+                    values: None,
                 },
                 Some(at) => PixelTerms {
                     fx,
                     fy,
                     residual: v - (model + own.amplitude * at[4]),
-                    lit: true,
-                    values: own.values(at, free),
+                    values: Some(own.values(at, free)),
                 },
             };
         }
@@ -224,15 +222,14 @@ impl Fit {
 const CHUNK: usize = 32;
 
 /// One pixel's part in a step: its position about the floor's centre, its residual before the
-/// step, whether the particle's light reaches it, and if so the particle's Jacobian values
-/// (x, y, amplitude, radius, edge).
+/// step, and where the particle's light reaches it, the particle's Jacobian values (x, y,
+/// amplitude, radius, edge).
 #[derive(Debug, Clone, Copy, Default)]
 struct PixelTerms {
     fx: f64,
     fy: f64,
     residual: f64,
-    lit: bool,
-    values: [f64; 5],
+    values: Option<[f64; 5]>,
 }
 
 /// Element `k` of the diagonal of `(L Lt)^-1`, `l` holding the Cholesky factor `L` in its lower
