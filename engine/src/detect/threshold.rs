@@ -18,12 +18,19 @@ pub(super) struct Tiles {
     max: Vec<u16>,
     /// Tiles that may hold foreground pixels.
     candidate: Vec<bool>,
+    /// The image's rows.
+    rows: usize,
+    /// Per column, the smallest and largest blurred value over the current tile row's rows
+    /// so far.
+    column_min: Vec<u16>,
+    column_max: Vec<u16>,
 }
 
 impl Tiles {
     /// Empty ranges for an image of `w` x `h` pixels.
     pub(super) fn reset(&mut self, w: usize, h: usize) {
         (self.tiles_x, self.tiles_y) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        self.rows = h;
         let n = self.tiles_x * self.tiles_y;
         self.min.clear();
         self.min.resize(n, u16::MAX);
@@ -31,16 +38,42 @@ impl Tiles {
         self.max.resize(n, 0);
     }
 
-    /// Takes the blurred row `y` into its tiles' ranges.
+    /// Takes the blurred row `y` into its tiles' ranges: each column's range over the tile
+    /// row's rows so far (a plain element-wise pass, vectorised), folded into the tiles once
+    /// the tile row is complete (its last row or the image's).
     pub(super) fn record_row(&mut self, y: usize, row: &[u16]) {
-        let tiles = (y / TILE) * self.tiles_x..(y / TILE + 1) * self.tiles_x;
+        if y.is_multiple_of(TILE) {
+            self.column_min.clear();
+            self.column_min.extend_from_slice(row);
+            self.column_max.clear();
+            self.column_max.extend_from_slice(row);
+        } else {
+            for ((lo, hi), &v) in self
+                .column_min
+                .iter_mut()
+                .zip(&mut self.column_max)
+                .zip(row)
+            {
+                *lo = (*lo).min(v);
+                *hi = (*hi).max(v);
+            }
+        }
+        if y % TILE == TILE - 1 || y + 1 == self.rows {
+            self.fold_tile_row(y / TILE);
+        }
+    }
+
+    /// The tiles of tile row `ty` take their columns' ranges.
+    fn fold_tile_row(&mut self, ty: usize) {
+        let tiles = ty * self.tiles_x..(ty + 1) * self.tiles_x;
         let (mins, maxs) = (&mut self.min[tiles.clone()], &mut self.max[tiles]);
-        for ((lo, hi), chunk) in mins.iter_mut().zip(maxs.iter_mut()).zip(row.chunks(TILE)) {
-            let (cmin, cmax) = chunk
-                .iter()
-                .fold((u16::MAX, 0u16), |(a, b), &v| (a.min(v), b.max(v)));
-            *lo = (*lo).min(cmin);
-            *hi = (*hi).max(cmax);
+        let columns = self
+            .column_min
+            .chunks(TILE)
+            .zip(self.column_max.chunks(TILE));
+        for ((lo, hi), (cmin, cmax)) in mins.iter_mut().zip(maxs.iter_mut()).zip(columns) {
+            *lo = cmin.iter().fold(*lo, |a, &v| a.min(v));
+            *hi = cmax.iter().fold(*hi, |a, &v| a.max(v));
         }
     }
 
@@ -68,16 +101,20 @@ impl Tiles {
     }
 }
 
-/// Running column sums of the blurred image, reused from image to image.
+/// Running column sums of the blurred image and the box sums along a row, reused from image
+/// to image.
 #[derive(Debug, Default)]
 pub(super) struct Threshold {
     column_sums: Vec<i32>,
+    prefix: Vec<i32>,
 }
 
 impl Threshold {
     /// Eq. 1 against the box mean (replicated borders), into `mask` (1 foreground, 0 not). Tiles
     /// are screened first ([`Tiles::screen`]); only surviving tiles get exact box sums, from
-    /// running column sums (vertical) and a prefix sum along each tile row (horizontal).
+    /// running column sums (vertical) and a prefix sum along the row (horizontal): over each
+    /// surviving tile, or over the whole row where its tiles' overlapping margins would sum
+    /// more columns than the row has.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn run(
         &mut self,
@@ -96,15 +133,41 @@ impl Threshold {
         mask.clear();
         mask.resize(w * h, 0);
         tiles.screen(half, c_scaled);
-        let row = |y: isize| y.clamp(0, h as isize - 1) as usize * w;
-        // Column sums over rows y-half..=y+half (replicated) for the current row y, padded by
-        // `half` replicated columns each side so a tile's window needs no clamping. With the box
-        // capped at 101 and |C| at 255 every sum and product below stays inside i32.
-        let (area, offset) = (area as i32, offset as i32);
+        // With the box capped at 101 and |C| at 255 every box sum and product below stays
+        // inside i32.
+        let test = BoxTest {
+            half,
+            area: area as i32,
+            offset: offset as i32,
+        };
+        self.start_column_sums(blurred, (w, h), half);
+        self.prefix.resize(w + 2 * half + 1, 0);
+        for y in 0..h {
+            if y > 0 {
+                self.advance_column_sums(blurred, (w, h), half, y);
+            }
+            let (blurred, mask) = (&blurred[y * w..(y + 1) * w], &mut mask[y * w..(y + 1) * w]);
+            let row_tiles = (y / TILE) * tiles.tiles_x..(y / TILE + 1) * tiles.tiles_x;
+            let candidates = &tiles.candidate[row_tiles];
+            let surviving = candidates.iter().filter(|&&c| c).count();
+            if surviving * (TILE + 2 * half) >= w + 2 * half {
+                test.span(&self.column_sums, &mut self.prefix, blurred, mask, 0..w);
+                continue;
+            }
+            for (tx, _) in candidates.iter().enumerate().filter(|(_, &c)| c) {
+                let span = tx * TILE..((tx + 1) * TILE).min(w);
+                test.span(&self.column_sums, &mut self.prefix, blurred, mask, span);
+            }
+        }
+    }
+
+    /// Column sums over rows -half..=half (replicated) for row 0, padded by `half` replicated
+    /// columns each side so a span's box needs no clamping.
+    fn start_column_sums(&mut self, blurred: &[u16], (w, h): (usize, usize), half: usize) {
         self.column_sums.clear();
         self.column_sums.resize(w + 2 * half, 0);
         for k in -(half as isize)..=half as isize {
-            let r = row(k);
+            let r = clamped_row(k, h) * w;
             for (s, &b) in self.column_sums[half..half + w]
                 .iter_mut()
                 .zip(&blurred[r..r + w])
@@ -112,51 +175,81 @@ impl Threshold {
                 *s += b as i32;
             }
         }
-        let side = 2 * half + 1;
-        let mut prefix: Vec<i32> = vec![0; TILE + 2 * half + 1];
-        let mut sums: Vec<i32> = vec![0; TILE];
-        for y in 0..h {
-            if y > 0 {
-                let (add, sub) = (
-                    row((y + half) as isize),
-                    row(y as isize - half as isize - 1),
-                );
-                for ((s, &a), &b) in self.column_sums[half..half + w]
-                    .iter_mut()
-                    .zip(&blurred[add..add + w])
-                    .zip(&blurred[sub..sub + w])
-                {
-                    *s += a as i32 - b as i32;
-                }
-            }
-            let (first, last) = (self.column_sums[half], self.column_sums[half + w - 1]);
-            self.column_sums[..half].fill(first);
-            self.column_sums[half + w..].fill(last);
-            let ty = y / TILE;
-            for tx in 0..tiles.tiles_x {
-                if !tiles.candidate[ty * tiles.tiles_x + tx] {
-                    continue;
-                }
-                let (x0, x1) = (tx * TILE, ((tx + 1) * TILE).min(w));
-                let n = x1 - x0;
-                // Padded column x0 is image column x0 - half.
-                let mut running = 0;
-                for (p, &c) in prefix[1..]
-                    .iter_mut()
-                    .zip(&self.column_sums[x0..x1 + 2 * half])
-                {
-                    running += c;
-                    *p = running;
-                }
-                for (i, s) in sums[..n].iter_mut().enumerate() {
-                    *s = prefix[i + side] - prefix[i];
-                }
-                let blurred = &blurred[y * w + x0..y * w + x1];
-                let mask = &mut mask[y * w + x0..y * w + x1];
-                for ((m, &b), &sum) in mask.iter_mut().zip(blurred).zip(&sums[..n]) {
-                    *m = (b as i32 * area + offset >= sum) as u8;
-                }
-            }
+        self.pad_column_sums(w, half);
+    }
+
+    /// Moves the column sums from row `y - 1`'s box to row `y`'s.
+    fn advance_column_sums(
+        &mut self,
+        blurred: &[u16],
+        (w, h): (usize, usize),
+        half: usize,
+        y: usize,
+    ) {
+        let add = clamped_row((y + half) as isize, h) * w;
+        let sub = clamped_row(y as isize - half as isize - 1, h) * w;
+        for ((s, &a), &b) in self.column_sums[half..half + w]
+            .iter_mut()
+            .zip(&blurred[add..add + w])
+            .zip(&blurred[sub..sub + w])
+        {
+            *s += a as i32 - b as i32;
+        }
+        self.pad_column_sums(w, half);
+    }
+
+    /// Replicates the first and last column sums into the `half` padding columns each side.
+    fn pad_column_sums(&mut self, w: usize, half: usize) {
+        let (first, last) = (self.column_sums[half], self.column_sums[half + w - 1]);
+        self.column_sums[..half].fill(first);
+        self.column_sums[half + w..].fill(last);
+    }
+}
+
+/// Row `y` clamped to an image of `h` rows (borders replicated).
+fn clamped_row(y: isize, h: usize) -> usize {
+    y.clamp(0, h as isize - 1) as usize
+}
+
+/// Eq. 1 on integers: a pixel passes where `blurred * area + offset >= box sum`.
+struct BoxTest {
+    half: usize,
+    area: i32,
+    offset: i32,
+}
+
+impl BoxTest {
+    /// Tests the pixels `span` of a row (`blurred`, `mask`) against their box sums, from the
+    /// row's padded `column_sums` (padded column x is image column x - half) through `prefix`.
+    fn span(
+        &self,
+        column_sums: &[i32],
+        prefix: &mut [i32],
+        blurred: &[u16],
+        mask: &mut [u8],
+        span: std::ops::Range<usize>,
+    ) {
+        let (x0, x1) = (span.start, span.end);
+        let side = 2 * self.half + 1;
+        // A whole row's running sum may pass i32::MAX (a wide image, a large box); it wraps,
+        // and each box sum, a difference of two of them, is still exact.
+        let mut running = 0i32;
+        prefix[0] = 0;
+        for (p, &c) in prefix[1..=x1 - x0 + 2 * self.half]
+            .iter_mut()
+            .zip(&column_sums[x0..x1 + 2 * self.half])
+        {
+            running = running.wrapping_add(c);
+            *p = running;
+        }
+        let (area, offset) = (self.area, self.offset);
+        for (((m, &b), &hi), &lo) in mask[x0..x1]
+            .iter_mut()
+            .zip(&blurred[x0..x1])
+            .zip(&prefix[side..])
+            .zip(&prefix[..x1 - x0])
+        {
+            *m = (b as i32 * area + offset >= hi.wrapping_sub(lo)) as u8;
         }
     }
 }
@@ -191,4 +284,91 @@ pub(super) fn effective_contrast(config: &DetectConfig, image: ImageView<'_>) ->
     config
         .contrast_c
         .min(-config.noise_sigmas * BLUR_NOISE_GAIN * sigma)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Eq. 1 pixel by pixel: the blurred value against its box's mean minus C, borders
+    /// replicated, on the same integer scale.
+    fn naive(blurred: &[u16], (w, h): (usize, usize), box_size_px: usize, c: f64) -> Vec<u8> {
+        let half = (box_size_px / 2) as isize;
+        let area = ((2 * half + 1) * (2 * half + 1)) as i64;
+        let offset = (c * area as f64 * 256.0).round() as i64;
+        let at = |x: isize, y: isize| {
+            let (x, y) = (x.clamp(0, w as isize - 1), y.clamp(0, h as isize - 1));
+            blurred[y as usize * w + x as usize] as i64
+        };
+        (0..h as isize)
+            .flat_map(|y| (0..w as isize).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let sum: i64 = (-half..=half)
+                    .flat_map(|dy| (-half..=half).map(move |dx| (dx, dy)))
+                    .map(|(dx, dy)| at(x + dx, y + dy))
+                    .sum();
+                u8::from(at(x, y) * area + offset >= sum)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn each_tile_records_the_range_of_its_pixels() {
+        // Edge tiles cut short on both axes.
+        let (w, h) = (37, 35);
+        let image: Vec<u16> = (0..w * h).map(|i| ((i * 7919) % 1013) as u16).collect();
+        let mut tiles = Tiles::default();
+        tiles.reset(w, h);
+        for y in 0..h {
+            tiles.record_row(y, &image[y * w..(y + 1) * w]);
+        }
+        for (t, (&lo, &hi)) in tiles.min.iter().zip(&tiles.max).enumerate() {
+            let (tx, ty) = (t % tiles.tiles_x, t / tiles.tiles_x);
+            let pixels = (ty * TILE..((ty + 1) * TILE).min(h))
+                .flat_map(|y| (tx * TILE..((tx + 1) * TILE).min(w)).map(move |x| y * w + x));
+            let values: Vec<u16> = pixels.map(|i| image[i]).collect();
+            assert_eq!(
+                lo,
+                values.iter().copied().fold(u16::MAX, u16::min),
+                "tile {t}"
+            );
+            assert_eq!(hi, values.iter().copied().fold(0, u16::max), "tile {t}");
+        }
+        assert_eq!(tiles.min.len(), 9);
+    }
+
+    #[test]
+    fn the_screened_threshold_is_eq_1_at_every_pixel() {
+        // Dim noise with bright spots: tile rows with one spot (a few surviving tiles, summed
+        // tile by tile) and with spots everywhere (summed along the whole row), boxes from small
+        // to wider than a tile, and a C that every tile survives.
+        let (w, h) = (83, 61);
+        let mut state = 11u64;
+        let blurred: Vec<u16> = (0..w * h)
+            .map(|i| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let noise = (state >> 62) as u16 * 256;
+                let (x, y) = (i % w, i / w);
+                let spot = ((30..34).contains(&x) && (5..9).contains(&y)) || (y > 40 && x % 5 == 0);
+                noise + if spot { 60 * 256 } else { 0 }
+            })
+            .collect();
+        for (box_size_px, c) in [(3, -6.0), (15, -6.0), (15, 2.0), (41, -3.0)] {
+            let mut tiles = Tiles::default();
+            tiles.reset(w, h);
+            for y in 0..h {
+                tiles.record_row(y, &blurred[y * w..(y + 1) * w]);
+            }
+            let mut mask = Vec::new();
+            Threshold::default().run(&blurred, (w, h), &mut tiles, box_size_px, c, &mut mask);
+            assert_eq!(
+                mask,
+                naive(&blurred, (w, h), box_size_px, c),
+                "box {box_size_px}, C {c}"
+            );
+            assert!(mask.contains(&1) && mask.contains(&0));
+        }
+    }
 }
