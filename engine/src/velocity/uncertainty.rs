@@ -310,36 +310,44 @@ impl ScenePool {
 /// set it; per window, so windows of different noise (near and far particles) are each judged
 /// against their own. 0 where the estimates are no larger than their noise.
 fn spread_of_terms(terms: &[(f64, f64)]) -> f64 {
-    const MEDIAN_OF_CHI_SQUARE_1: f64 = 0.455;
-    let standardized = |tau2: f64| {
-        let mut ratios: Vec<f64> = terms
-            .iter()
-            .map(|(d2, v)| d2 / (tau2 + v).max(f64::MIN_POSITIVE))
-            .collect();
-        median(&mut ratios)
-    };
-    if terms.is_empty() || standardized(0.0) <= MEDIAN_OF_CHI_SQUARE_1 {
+    let above_median = |tau2: f64| median_ratio_exceeds(terms, tau2, MEDIAN_OF_CHI_SQUARE_1);
+    if terms.is_empty() || !above_median(0.0) {
         return 0.0;
     }
     let mut high = terms.iter().map(|(d2, _)| *d2).fold(0.0, f64::max);
-    while standardized(high) > MEDIAN_OF_CHI_SQUARE_1 && high.is_finite() {
+    while above_median(high) && high.is_finite() {
         high *= 2.0;
     }
     // The median ratio falls as tau2 grows: bisect geometrically from twelve decades below
     // to a relative precision of about 1e-6 (below that, tau2 is nothing next to the noise).
     let mut low = high * 1e-12;
-    if standardized(low) <= MEDIAN_OF_CHI_SQUARE_1 {
+    if !above_median(low) {
         return 0.0;
     }
     for _ in 0..24 {
         let middle = (low * high).sqrt();
-        if standardized(middle) > MEDIAN_OF_CHI_SQUARE_1 {
+        if above_median(middle) {
             low = middle;
         } else {
             high = middle;
         }
     }
     (low * high).sqrt()
+}
+
+/// The median of a chi-square variable of one degree of freedom.
+const MEDIAN_OF_CHI_SQUARE_1: f64 = 0.455;
+
+/// Whether the median of `estimate^2 / (tau2 + v)` over `terms` is above `level`. Of an odd
+/// count, the median is above it where more than half the ratios are: a count, no sorting.
+fn median_ratio_exceeds(terms: &[(f64, f64)], tau2: f64, level: f64) -> bool {
+    let ratio = |&(d2, v): &(f64, f64)| d2 / (tau2 + v).max(f64::MIN_POSITIVE);
+    if terms.len() % 2 == 1 {
+        let above = terms.iter().filter(|t| ratio(t) > level).count();
+        return 2 * above > terms.len();
+    }
+    let mut ratios: Vec<f64> = terms.iter().map(ratio).collect();
+    median(&mut ratios) > level
 }
 
 #[cfg(test)]
@@ -374,6 +382,30 @@ mod tests {
             .collect();
         assert!(none.iter().all(|&t| t < 0.1), "{none:?}");
         assert_eq!(spread_of_terms(&[]), 0.0);
+    }
+
+    #[test]
+    fn the_median_ratio_test_agrees_with_the_sorted_median() {
+        // Odd counts are counted, even ones sorted: both as the median of the sorted ratios,
+        // at levels around it and at a level equal to one of the ratios.
+        for n in [1, 2, 15, 16, 510, 511] {
+            let terms = &drawn_terms(2.0, n as u64)[..n];
+            for tau2 in [0.0, 0.5, 4.0, f64::INFINITY] {
+                let mut ratios: Vec<f64> = terms
+                    .iter()
+                    .map(|&(d2, v)| d2 / (tau2 + v).max(f64::MIN_POSITIVE))
+                    .collect();
+                let m = median(&mut ratios.clone());
+                ratios.sort_by(f64::total_cmp);
+                for level in [0.0, 0.455, m * 0.999, m, m * 1.001, ratios[n / 2], 1e9] {
+                    assert_eq!(
+                        median_ratio_exceeds(terms, tau2, level),
+                        m > level,
+                        "{n} terms, tau2 {tau2}, level {level}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
