@@ -10,7 +10,9 @@
 #
 # With MRPTV_PREVIOUS=PATH (another build of mrptv, e.g. the previous release), that build's
 # whole pipeline is measured on the same recordings in the same run, two cores, with its ratio:
-# how a change moved the speed, apart from the machine's drift between runs.
+# how a change moved the speed, apart from the machine's drift between runs. Its runs alternate
+# with this build's two-core runs (5 of each, the fastest of each kept), so a slow spell of the
+# machine falls on both alike.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 frames="${1:-60}"
@@ -34,15 +36,35 @@ previous="${MRPTV_PREVIOUS:-}"
 # The fastest of 3 runs of `process` ($1: RAYON_NUM_THREADS; $2: the binary, default this
 # build), pairs/s inside the pipeline.
 mrptv_rate() {
-  local best=0 rate bin="${2:-$mrptv}"
+  local best=0 rate
   for _ in 1 2 3; do
-    # The run's summary is on stderr.
-    rate="$(RAYON_NUM_THREADS="$1" "$bin" process "$rec" --out "$work/t.csv" 2>&1 >/dev/null \
-      | sed -n 's/.*; pipeline \([0-9.]*\) frames\/s.*/\1/p')"
-    [ -n "$rate" ] || { echo "$bin process $rec failed" >&2; exit 1; }
+    rate="$(one_rate "$1" "${2:-$mrptv}")"
     best="$(python3 -c "print(max($best, $rate))")"
   done
   echo "$best"
+}
+
+# One run of `process` ($1: RAYON_NUM_THREADS; $2: the binary), pairs/s inside the pipeline.
+one_rate() {
+  local rate
+  # The run's summary is on stderr.
+  rate="$(RAYON_NUM_THREADS="$1" "$2" process "$rec" --out "$work/t.csv" 2>&1 >/dev/null \
+    | sed -n 's/.*; pipeline \([0-9.]*\) frames\/s.*/\1/p')"
+  [ -n "$rate" ] || { echo "$2 process $rec failed" >&2; exit 1; }
+  echo "$rate"
+}
+
+# The fastest of 5 alternating runs each of this build and the previous one, two cores: "ours
+# previous" pairs/s.
+paired_rates() {
+  local best_ours=0 best_prev=0 ours prev
+  for _ in 1 2 3 4 5; do
+    ours="$(one_rate 2 "$mrptv")"
+    prev="$(one_rate 2 "$previous")"
+    best_ours="$(python3 -c "print(max($best_ours, $ours))")"
+    best_prev="$(python3 -c "print(max($best_prev, $prev))")"
+  done
+  echo "$best_ours $best_prev"
 }
 
 echo "mrptv $("$mrptv" --version | cut -d' ' -f2), OpenCV $("$venv/bin/python" -c 'import cv2; print(cv2.__version__)'), $(nproc) cores, seeded scene 640x480, $frames frames per density"
@@ -58,9 +80,12 @@ for particles in 50 200 1000 1540 3070; do
   touching="$(sed -n 's/.*, \([0-9]*\) % of particle images touching.*/\1/p' <<<"$scene")"
   read -r opencv _ < <("$venv/bin/python" benches/peers.py "$rec" 3)
   one="$(mrptv_rate 1)"
-  two="$(mrptv_rate 2)"
   prev=""
-  [ -z "$previous" ] || prev="$(mrptv_rate 2 "$previous")"
+  if [ -z "$previous" ]; then
+    two="$(mrptv_rate 2)"
+  else
+    read -r two prev < <(paired_rates)
+  fi
   python3 - "$particles" "$ppp" "$touching" "$opencv" "$one" "$two" "$prev" <<'PY'
 import sys
 n, ppp, touching, opencv, one, two, prev = sys.argv[1:]
