@@ -296,19 +296,22 @@ pub(super) fn nearest_pixel(image: ImageView<'_>, at: PixelPoint) -> usize {
         + (at.x.round() as usize).min(image.width - 1)
 }
 
-/// The next pixel at or after `from` marked 1 (foreground, unlabelled). Skips 16 pixels at a time
-/// with a branch-free test the compiler vectorises: most of an image is background.
+/// The next pixel at or after `from` marked 1 (foreground, unlabelled). Skips eight pixels at a
+/// time, read as one word: most of an image is background (0) or labelled (2), neither of which
+/// has the low bit set.
 fn next_unlabelled(mask: &[u8], from: usize) -> Option<usize> {
+    const LOW_BITS: u64 = 0x0101_0101_0101_0101;
+    let first_in = |pixels: &[u8], at: usize| pixels.iter().position(|&m| m == 1).map(|p| at + p);
+    let mut words = mask.get(from..)?.chunks_exact(8);
     let mut at = from;
-    while at < mask.len() {
-        let end = (at + 16).min(mask.len());
-        let chunk = &mask[at..end];
-        if chunk.iter().fold(0u8, |acc, &m| acc | (m & 1)) != 0 {
-            return chunk.iter().position(|&m| m == 1).map(|p| at + p);
+    for word in words.by_ref() {
+        let bytes: [u8; 8] = word.try_into().unwrap_or_default();
+        if u64::from_ne_bytes(bytes) & LOW_BITS != 0 {
+            return first_in(word, at);
         }
-        at = end;
+        at += 8;
     }
-    None
+    first_in(words.remainder(), at)
 }
 
 /// Centroid and second central moments of a region's pixel positions (unweighted: its shape).
@@ -351,5 +354,27 @@ impl Moments {
         );
         let (major, minor) = (mean + diff, (mean - diff).max(1e-12));
         (major / minor).sqrt()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_next_unlabelled_pixel_is_found_from_any_start() {
+        // Background, labelled pixels and unlabelled ones, in and across words and in the
+        // tail shorter than a word.
+        let mut mask = vec![0u8; 45];
+        for i in [3, 9, 10, 17, 30, 43] {
+            mask[i] = 2;
+        }
+        for i in [5, 16, 31, 44] {
+            mask[i] = 1;
+        }
+        for from in 0..=mask.len() + 1 {
+            let expected = (from..mask.len()).find(|&i| mask[i] == 1);
+            assert_eq!(next_unlabelled(&mask, from), expected, "from {from}");
+        }
     }
 }
