@@ -33,12 +33,12 @@ trap 'rm -rf "$work"' EXIT
 previous="${MRPTV_PREVIOUS:-}"
 [ -z "$previous" ] || [ -x "$previous" ] || { echo "MRPTV_PREVIOUS=$previous is not an executable" >&2; exit 1; }
 
-# The fastest of 3 runs of `process` ($1: RAYON_NUM_THREADS; $2: the binary, default this
-# build), pairs/s inside the pipeline.
+# The fastest of 3 runs of this build's `process` ($1: RAYON_NUM_THREADS), pairs/s inside
+# the pipeline.
 mrptv_rate() {
   local best=0 rate
   for _ in 1 2 3; do
-    rate="$(one_rate "$1" "${2:-$mrptv}")"
+    rate="$(one_rate "$1" "$mrptv")"
     best="$(python3 -c "print(max($best, $rate))")"
   done
   echo "$best"
