@@ -284,6 +284,34 @@ fn nearest_first(
     a.0.total_cmp(&b.0).then(a.1 .1.cmp(&b.1 .1))
 }
 
+/// The fewest successes, at least 2, with `binomial_tail(n, v, p) < chance`; `None` if even `n`
+/// is not that unlikely.
+pub(crate) fn votes_needed(n: usize, p: f64, chance: f64) -> Option<usize> {
+    binomial_tails(n, p)
+        .enumerate()
+        .take(n + 1)
+        .skip(2)
+        .find(|&(_, tail)| tail < chance)
+        .map(|(at_least, _)| at_least)
+}
+
+/// P(X >= at_least) for X ~ Binomial(n, p).
+pub(crate) fn binomial_tail(n: usize, at_least: usize, p: f64) -> f64 {
+    binomial_tails(n, p).nth(at_least.min(n + 1)).unwrap_or(0.0)
+}
+
+/// P(X >= 0), P(X >= 1), ..., P(X >= n + 1) for X ~ Binomial(n, p): one minus the probability
+/// terms summed from below, so every tail is computed the same way wherever it is asked for.
+fn binomial_tails(n: usize, p: f64) -> impl Iterator<Item = f64> {
+    let mut term = (1.0 - p).powi(n as i32);
+    let mut below = 0.0;
+    std::iter::once(1.0).chain((0..=n).map(move |i| {
+        below += term;
+        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
+        (1.0 - below).max(0.0)
+    }))
+}
+
 /// Point indices sorted by x, so a box query costs a binary search plus its hits.
 pub(crate) struct SortedByX {
     order: Vec<(f64, usize)>,
@@ -308,6 +336,25 @@ impl SortedByX {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn binomial_tail_matches_direct_sums() {
+        assert!((binomial_tail(8, 0, 0.3) - 1.0).abs() < 1e-12);
+        assert!((binomial_tail(2, 2, 0.5) - 0.25).abs() < 1e-12);
+        assert!((binomial_tail(3, 2, 0.5) - 0.5).abs() < 1e-12);
+        assert!(binomial_tail(8, 5, 0.01) < 1e-7);
+    }
+
+    #[test]
+    fn votes_needed_is_the_fewest_that_chance_explains_too_rarely() {
+        for n in 2..=8 {
+            for p in [1e-4, 0.01, 0.05, 0.1, 0.2, 0.4, 0.7] {
+                let direct = (2..=n).find(|&v| binomial_tail(n, v, p) < 1e-3);
+                assert_eq!(votes_needed(n, p, 1e-3), direct, "n {n}, p {p}");
+            }
+        }
+        assert_eq!(votes_needed(8, 0.7, 1e-3), None);
+    }
 
     #[test]
     fn median_of_odd_even_and_no_values() {

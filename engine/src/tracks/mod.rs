@@ -1,6 +1,7 @@
 //! Stage 4: 3D tracks. Each frame's stereo pairs, triangulated, continue the 3D tracks of their
 //! camera tracks; a pair no live 3D track continues is a new particle, unless it lies where a
-//! broken 3D track's recent path predicts (`rejoin`). A 3D track survives a gap as long as its
+//! broken 3D track's recent path predicts, or where the flow around a young one carries it
+//! (`rejoin`, `flow`). A 3D track survives a gap as long as its
 //! left camera track coasts, and is then retired and kept the `M` frames its last samples may
 //! still centre a velocity window on.
 
@@ -15,7 +16,10 @@ use crate::geometry::{RectPoint, Rectification};
 use crate::pipeline::{MatchedPoint, PipelineConfig};
 use crate::predict::Predictor;
 use crate::shake::refine::Shape;
+use crate::spatial::{median, PointGrid, GRID_CELL_PX};
 
+mod consensus;
+mod flow;
 mod rejoin;
 mod turn;
 
@@ -176,6 +180,11 @@ pub(crate) struct FoundSample {
     /// showed it.
     pub(crate) camera_tracks: Option<(u64, u64)>,
 }
+
+/// A track of this many samples continued into a frame took a known step (it has a path of its
+/// own; younger ones are carried by the flow, `rejoin`): its step is not put to its
+/// neighbours' vote, but votes itself.
+const KNOWN_STEP_SAMPLES: usize = 3;
 
 /// Where a 3D track without a pair this frame came from, so it can go back if no new pair
 /// rejoins it.
@@ -389,7 +398,8 @@ impl Tracks {
         if self.config.rejoin_frames > 0 && !births.is_empty() {
             self.gather_recent_orphans(seq, &mut orphans);
         }
-        let rejoined = self.settle_births(births, orphans, t_s, rect, points, &mut continued);
+        let rejoined =
+            self.settle_births(births, orphans, (seq, t_s), rect, points, &mut continued);
         self.retire_unseen(seq, continued);
         rejoined
     }
@@ -436,20 +446,23 @@ impl Tracks {
     }
 
     /// Gives each new pair the orphan it rejoins, or a new track; returns the orphans no pair
-    /// took to where they came from, and counts the rejoined pairs.
-    #[allow(clippy::too_many_arguments)]
+    /// took to where they came from, and counts the rejoined pairs. A young orphan is carried
+    /// by the flow into this frame (frame `seq`, time `t_s`) where the flow is known.
     fn settle_births(
         &mut self,
         births: Vec<Pair>,
         orphans: Vec<(Orphan, Track3d)>,
-        t_s: f64,
+        (seq, t_s): (u64, f64),
         rect: &Rectification,
         points: &mut Vec<MatchedPoint>,
         continued: &mut BTreeMap<u64, Track3d>,
     ) -> usize {
+        let flow = (self.config.rejoin_frames > 0 && !births.is_empty())
+            .then(|| self.flow_into(seq, &births, &orphans, continued, rect));
         let joins = rejoin::rejoin(
             (&self.config, &self.limits, &self.turns),
             rect,
+            flow.as_ref(),
             &births,
             &orphans,
             t_s,
@@ -477,6 +490,60 @@ impl Tracks {
         rejoined
     }
 
+    /// The flow into frame `seq` by neighbour consensus among every particle seen in the frame
+    /// before (live tracks, `continued` ones and `orphans`) and in this one (`continued` and
+    /// found tracks, and the `births`); a settled track's step is known.
+    fn flow_into(
+        &self,
+        seq: u64,
+        births: &[Pair],
+        orphans: &[(Orphan, Track3d)],
+        continued: &BTreeMap<u64, Track3d>,
+        rect: &Rectification,
+    ) -> flow::Flow {
+        let seen = |s: &Sample| s.separation != Separation::Hidden;
+        let mut before: Vec<&Sample> = Vec::new();
+        let mut known = Vec::new();
+        let mut after: Vec<&Sample> = Vec::new();
+        for track in continued.values().chain(self.live.values()) {
+            let newest = track.samples.back().filter(|s| s.seq == seq && seen(s));
+            let previous = track
+                .samples
+                .iter()
+                .rev()
+                .find(|s| s.seq < seq)
+                .filter(|s| s.seq + 1 == seq && seen(s));
+            if let Some(newest) = newest {
+                after.push(newest);
+            }
+            if let Some(previous) = previous {
+                before.push(previous);
+                let trusted = track.samples.len() >= KNOWN_STEP_SAMPLES;
+                known.push((trusted && newest.is_some()).then(|| after.len() - 1));
+            }
+        }
+        for (_, track) in orphans {
+            if let Some(last) = track.samples.back().filter(|s| s.seq + 1 == seq && seen(s)) {
+                before.push(last);
+                known.push(None);
+            }
+        }
+        after.extend(births.iter().map(|b| &b.sample).filter(|s| seen(s)));
+        let steps = consensus::steps(
+            (&before, &known),
+            &after,
+            self.limits.max_displacement_px,
+            rect,
+            self.limits.disparity_sigma_px,
+        );
+        flow::Flow::of(
+            steps.into_iter().map(|(i, j)| (before[i], after[j])),
+            image_spacing_px(&after),
+            rect,
+            self.limits.disparity_sigma_px,
+        )
+    }
+
     /// Makes this frame's `continued` tracks the live ones. A live track unseen this frame
     /// survives a gap as long as its left track may coast; after that (or where its left track
     /// id now leads another 3D track) it is retired, and kept M frames for the centred vectors
@@ -497,6 +564,20 @@ impl Tracks {
         let kept = self.limits.retired_frames;
         self.retired.retain(|t| seq - t.last_seq() <= kept);
     }
+}
+
+/// The median distance in the left image from each of `samples` to its nearest neighbour.
+fn image_spacing_px(samples: &[&Sample]) -> f64 {
+    let grid = PointGrid::new(samples.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
+    let mut distances: Vec<f64> = samples
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| {
+            let nearest = grid.nearest(s.left_rect.x, s.left_rect.y, 1, i);
+            Some(nearest.first()?.distance_sq(s.left_rect).sqrt())
+        })
+        .collect();
+    median(&mut distances)
 }
 
 /// Appends `sample` to `track`, forgetting samples more than `history` frames older.
@@ -573,5 +654,45 @@ mod tests {
             .map(|(k, t)| (k, t.id, t.samples.len()))
             .collect();
         assert_eq!(live, vec![(5, id, 3)]);
+    }
+
+    /// A fast vortex whose particles all start new camera tracks in the second frame (each
+    /// moved farther than the linking box): the flow their neighbours agree on carries every
+    /// particle's track on.
+    #[test]
+    fn particles_whose_camera_tracks_all_broke_are_carried_on_by_the_flow() {
+        let rig = ScenarioSpec::new(Scenario::Flume).rig;
+        let rect = Rectification::new(&rig).expect("rectifies");
+        let (before, after) = consensus::tests::vortex(&rect);
+        let pairs = |samples: &[Sample], first_id: u64| -> Vec<Pair> {
+            samples
+                .iter()
+                .zip(first_id..)
+                .map(|(s, id)| Pair {
+                    left_track: id,
+                    right_track: id + 1000,
+                    sample: s.clone(),
+                    point: point(),
+                })
+                .collect()
+        };
+        let mut tracks = Tracks::new(&PipelineConfig::default());
+        let mut points = Vec::new();
+        let t = |s: &[Sample]| s[0].t_s;
+        tracks.update(1, t(&before), pairs(&before, 1), &rect, &mut points);
+        let rejoined = tracks.update(2, t(&after), pairs(&after, 5000), &rect, &mut points);
+        let carried: Vec<&Track3d> = tracks.all().filter(|t| t.samples.len() == 2).collect();
+        let right = carried
+            .iter()
+            .filter(|t| {
+                let i = before
+                    .iter()
+                    .position(|s| s.point_in_world == t.samples[0].point_in_world);
+                i.is_some_and(|i| after[i].point_in_world == t.samples[1].point_in_world)
+            })
+            .count();
+        assert_eq!(rejoined, carried.len());
+        assert!(right >= 70, "{right} of {} carried right", before.len());
+        assert_eq!(right, carried.len(), "none carried wrong");
     }
 }

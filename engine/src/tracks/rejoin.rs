@@ -1,15 +1,21 @@
 //! Broken 3D tracks rejoined ([`TrackConfig::rejoin_frames`]): a new stereo pair that lies where
 //! an orphaned 3D track's recent path predicts it continues that track; a lone sample joins
 //! through the one before it on a constant-velocity path; and a left track that changed partner
-//! keeps its track where the depth agrees.
+//! keeps its track where the depth agrees. A track too young for a path of its own is carried
+//! by the flow its neighbours took into this frame ([`super::flow`]).
 
 use nalgebra::Point3;
 
+use super::flow::Flow;
 use super::turn::Turns;
 use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig};
 use crate::geometry::{RectPoint, Rectification};
 use crate::spatial::{cheapest_first, PointGrid, GRID_CELL_PX};
 use crate::velocity::fit::{fit_line, fit_quadratic};
+
+/// Samples up to which a track is carried by the flow where it is known, not by its own path:
+/// a line through two samples is as good as the link between them.
+const CARRIED_SAMPLES: usize = 2;
 
 /// A rejoin: the orphan a new pair continues and, for a one-sample orphan, the one-sample orphan
 /// of the frame before that completes the path.
@@ -23,6 +29,9 @@ struct Prediction {
     /// In the left image, rectified, and the per-frame image step that led there.
     image: RectPoint,
     step_px: f64,
+    /// Its tolerances across the line of sight (rectified pixels) and along it (depth-noise
+    /// sigmas) where they are the flow's, not the track's own path's.
+    tolerance: Option<[f64; 2]>,
 }
 
 /// The geometry and tolerances rejoining is judged by.
@@ -36,9 +45,12 @@ struct Judge<'a> {
 
 /// For each new pair (`births`), the orphan it continues, if any: the continuation whose
 /// prediction the pair meets best, within the rejoin tolerances (one-to-one, closest first).
+/// A young orphan (one or two samples, the last in the frame before) is carried by the `flow`
+/// around it instead of its own path, where the flow is known there.
 pub(super) fn rejoin(
     (config, limits, turns): (&TrackConfig, &Limits, &Turns),
     rect: &Rectification,
+    flow: Option<&Flow>,
     births: &[Pair],
     orphans: &[(Orphan, Track3d)],
     t_s: f64,
@@ -52,9 +64,15 @@ pub(super) fn rejoin(
         rect,
         turn_per_frame: turns.per_frame(),
     };
-    let mut predictions = judge.predictions(orphans, t_s);
+    let seq = births[0].sample.seq;
+    let mut predictions = flow.map_or_else(Vec::new, |f| judge.carried(f, orphans, (seq, t_s)));
+    let mut carried = vec![false; orphans.len()];
+    for p in &predictions {
+        carried[p.orphan] = true;
+    }
+    predictions.extend(judge.predictions(orphans, &carried, t_s));
     let mut candidates = judge.predicted_candidates(births, &predictions);
-    judge.replaced_candidates(births, orphans, &mut predictions, &mut candidates);
+    judge.replaced_candidates(births, orphans, &carried, &mut predictions, &mut candidates);
     assign(candidates, &predictions, births.len(), orphans.len())
 }
 
@@ -74,9 +92,14 @@ pub(super) fn take_joined(
 }
 
 impl Judge<'_> {
-    /// What each orphan predicts: its path where it has one, else (a lone sample) the path it
-    /// makes with each lone sample of the frame before it.
-    fn predictions(&self, orphans: &[(Orphan, Track3d)], t_s: f64) -> Vec<Prediction> {
+    /// What each orphan the flow did not carry (`carried`) predicts: its path where it has
+    /// one, else (a lone sample) the path it makes with each lone sample of the frame before it.
+    fn predictions(
+        &self,
+        orphans: &[(Orphan, Track3d)],
+        carried: &[bool],
+        t_s: f64,
+    ) -> Vec<Prediction> {
         let lone_grid = PointGrid::new(
             orphans
                 .iter()
@@ -89,6 +112,9 @@ impl Judge<'_> {
         );
         let mut predictions = Vec::new();
         for (o, (_, track)) in orphans.iter().enumerate() {
+            if carried[o] {
+                continue;
+            }
             if let Some((world, image)) = predicted_position(track, t_s) {
                 let last = track.samples.back().map(|s| s.left_rect);
                 let step_px = last.map_or(0.0, |l| (image.x - l.x).hypot(image.y - l.y));
@@ -98,12 +124,43 @@ impl Judge<'_> {
                     world,
                     image,
                     step_px,
+                    tolerance: None,
                 });
             } else if let Some(b) = track.samples.back() {
                 self.lone_paths(o, b, orphans, &lone_grid, t_s, &mut predictions);
             }
         }
         predictions
+    }
+
+    /// Where the `flow` carries each young orphan (seen at most [`CARRIED_SAMPLES`] times,
+    /// the last time in the frame before `seq`): too young for a path of its own.
+    fn carried(
+        &self,
+        flow: &Flow,
+        orphans: &[(Orphan, Track3d)],
+        (seq, t_s): (u64, f64),
+    ) -> Vec<Prediction> {
+        orphans
+            .iter()
+            .enumerate()
+            .filter_map(|(o, (_, track))| {
+                let last = track.samples.back()?;
+                if track.samples.len() > CARRIED_SAMPLES || last.seq + 1 != seq {
+                    return None;
+                }
+                let carried = flow.carry(last, t_s)?;
+                Some(Prediction {
+                    orphan: o,
+                    before: None,
+                    world: carried.world,
+                    image: carried.image,
+                    step_px: (carried.image.x - last.left_rect.x)
+                        .hypot(carried.image.y - last.left_rect.y),
+                    tolerance: Some([carried.across_px, carried.along_sigmas]),
+                })
+            })
+            .collect()
     }
 
     /// Two lone samples in consecutive frames (`b`, of orphan `o`, and one before it) predict a
@@ -140,6 +197,7 @@ impl Judge<'_> {
                 world,
                 image,
                 step_px,
+                tolerance: None,
             });
         }
     }
@@ -175,19 +233,27 @@ impl Judge<'_> {
         let mut candidates = Vec::new();
         for (h, p) in predictions.iter().enumerate() {
             // A prediction misses by about the change in velocity over a frame, which grows
-            // with the step (a vortex turns its particles by a fixed angle per frame).
-            let across_px = self
-                .config
-                .rejoin_tolerance_px
-                .max(self.turn_per_frame * p.step_px);
+            // with the step (a vortex turns its particles by a fixed angle per frame); the
+            // flow's by what it was seen to miss.
+            let across_px = match p.tolerance {
+                Some([across_px, _]) => across_px,
+                None => self
+                    .config
+                    .rejoin_tolerance_px
+                    .max(self.turn_per_frame * p.step_px),
+            };
             for (_, b) in birth_grid.near(p.image.x, p.image.y, 2.0 * across_px) {
                 let sample = &births[*b].sample;
-                let c = cost(
-                    sample,
-                    &p.world,
-                    across_px,
-                    self.along_scale(sample.depth_m),
-                );
+                let along_m = match p.tolerance {
+                    Some([_, sigmas]) => {
+                        sigmas
+                            * self
+                                .rect
+                                .depth_sigma_m(sample.depth_m, self.limits.disparity_sigma_px)
+                    }
+                    None => self.along_scale(sample.depth_m),
+                };
+                let c = cost(sample, &p.world, across_px, along_m);
                 if c <= 1.0 {
                     candidates.push((c, *b, h));
                 }
@@ -203,10 +269,14 @@ impl Judge<'_> {
         &self,
         births: &[Pair],
         orphans: &[(Orphan, Track3d)],
+        carried: &[bool],
         predictions: &mut Vec<Prediction>,
         candidates: &mut Vec<(f64, usize, usize)>,
     ) {
         for (o, (kind, track)) in orphans.iter().enumerate() {
+            if carried[o] {
+                continue;
+            }
             let (Orphan::Replaced(left_track), [last]) = (kind, track.samples.as_slices().0) else {
                 continue;
             };
@@ -231,6 +301,7 @@ impl Judge<'_> {
                     world: last.point_in_world,
                     image: last.left_rect,
                     step_px: 0.0,
+                    tolerance: None,
                 });
                 candidates.push((c, b, predictions.len() - 1));
             }
