@@ -8,9 +8,10 @@
 //!
 //! Neighbours' steps differ by the flow's gradient times their distance; a flow whose steps
 //! differ by half the particles' spacing or more is not resolved by them (no tracking could
-//! follow it), so a neighbour votes for a step where it has one within half its distance of it
-//! (and the depth noise of both). A wide tolerance also catches unrelated particles: votes are
-//! weighed against how likely the neighbour's own candidates fall there by chance.
+//! follow it), so a neighbour votes for a step where it has one within half its distance of it,
+//! or within twice the gradient the last frame's flow showed times that distance where that is
+//! less (and the depth noise of both). A wide tolerance also catches unrelated particles: votes
+//! are weighed against how likely the neighbour's own candidates fall there by chance.
 
 use nalgebra::{Point3, Vector3};
 
@@ -23,6 +24,9 @@ use crate::spatial::{votes_needed, PointGrid, GRID_CELL_PX};
 const NEIGHBOURS: usize = 8;
 /// A neighbour's step may differ from the particle's by this fraction of their distance.
 const GRADIENT: f64 = 0.5;
+/// Where the flow's gradient was seen in the frame before, a neighbour's step may differ by
+/// this many times its median (the gradient varies through a flow), up to [`GRADIENT`].
+const GRADIENT_MEDIANS: f64 = 2.0;
 /// Votes are accepted where chance explains them less often than this.
 const CHANCE: f64 = 1e-3;
 /// Candidate steps a particle is judged on: its nearest in 3D.
@@ -43,7 +47,7 @@ struct Candidates {
 pub(super) fn steps(
     (before, known): (&[&Sample], &[Option<usize>]),
     after: &[&Sample],
-    reach_px: f64,
+    (reach_px, gradient): (f64, Option<f64>),
     rect: &Rectification,
     disparity_sigma_px: f64,
 ) -> Vec<(usize, usize)> {
@@ -65,6 +69,7 @@ pub(super) fn steps(
         })
         .collect();
     let positions: Vec<Point3<f64>> = before.iter().map(|s| s.point_in_world).collect();
+    let gradient_allowed = gradient.map_or(GRADIENT, |g| (GRADIENT_MEDIANS * g).min(GRADIENT));
     let mut steps = Vec::new();
     for (i, a) in before.iter().enumerate() {
         if let Some(j) = known[i] {
@@ -82,7 +87,7 @@ pub(super) fn steps(
         let tolerances: Vec<f64> = near
             .iter()
             .map(|&k| {
-                GRADIENT * (before[k].point_in_world - a.point_in_world).norm()
+                gradient_allowed * (before[k].point_in_world - a.point_in_world).norm()
                     + noise(a)
                     + noise(before[k])
             })
@@ -250,7 +255,7 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let (b, a): (Vec<&Sample>, Vec<&Sample>) =
             (before.iter().collect(), after.iter().collect());
-        let steps = steps((&b, &vec![None; b.len()]), &a, 100.0, &rect, 0.1);
+        let steps = steps((&b, &vec![None; b.len()]), &a, (100.0, None), &rect, 0.1);
         let right = steps.iter().filter(|(i, j)| i == j).count();
         assert!(right >= 75, "{right} of {} right", before.len());
         assert_eq!(right, steps.len(), "no wrong step: {steps:?}");
@@ -272,6 +277,6 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let b: Vec<&Sample> = before.iter().take(NEIGHBOURS).collect();
         let a: Vec<&Sample> = after.iter().collect();
-        assert!(steps((&b, &vec![None; b.len()]), &a, 100.0, &rect, 0.1).is_empty());
+        assert!(steps((&b, &vec![None; b.len()]), &a, (100.0, None), &rect, 0.1).is_empty());
     }
 }

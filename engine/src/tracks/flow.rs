@@ -61,6 +61,9 @@ pub(super) struct Flow {
     /// Median miss of the flow across the line of sight (rectified pixels) and along it
     /// (depth-noise sigmas); `None` before there are teaching tracks enough.
     miss: Option<[f64; 2]>,
+    /// Median size of the flow's gradient (Frobenius norm) over a step: how much two particles'
+    /// steps differ per metre between them.
+    gradient: Option<f64>,
 }
 
 /// Where the flow carries a particle, and how far off it may be found.
@@ -116,11 +119,14 @@ impl Flow {
             steps_s,
             ends,
             miss: None,
+            gradient: None,
         };
         // A flow that misses by half the spacing of particle images or more would carry a
         // particle to its neighbour as often as to itself: it carries none.
-        flow.miss = flow
-            .learn_miss(rect, disparity_sigma_px)
+        let learnt = flow.learn_miss(rect, disparity_sigma_px);
+        flow.gradient = learnt.map(|[_, _, gradient]| gradient);
+        flow.miss = learnt
+            .map(|[across, along, _]| [across, along])
             .filter(|[across, _]| ACROSS_MEDIANS * across < 0.5 * spacing_px);
         flow
     }
@@ -149,7 +155,7 @@ impl Flow {
         if !among(last.depth_m, &|i| self.ends[i].depth_m) {
             return None;
         }
-        let motion = self.fit(&last.point_in_world, near)?;
+        let motion = self.fit(&last.point_in_world, near)?.row(0).into_owned();
         let dt = t_s - last.t_s;
         Some(Carried {
             world: last.point_in_world + Vector3::new(motion[0], motion[1], motion[2]) * dt,
@@ -162,13 +168,19 @@ impl Flow {
         })
     }
 
+    /// How much two particles' steps differ per metre between them, typically.
+    pub(super) fn gradient(&self) -> Option<f64> {
+        self.gradient
+    }
+
     /// Median miss of each of up to [`MISS_TEACHERS`] teaching tracks against the fit of its
     /// neighbours without it: across its line of sight in pixels, along it in depth sigmas.
-    fn learn_miss(&self, rect: &Rectification, disparity_sigma_px: f64) -> Option<[f64; 2]> {
+    fn learn_miss(&self, rect: &Rectification, disparity_sigma_px: f64) -> Option<[f64; 3]> {
         let n = self.starts.len();
         let stride = n.div_ceil(MISS_TEACHERS).max(1);
         let mut across = Vec::new();
         let mut along = Vec::new();
+        let mut gradients = Vec::new();
         for i in (0..n).step_by(stride) {
             let end = &self.ends[i];
             let near = nearest_in_space(
@@ -178,10 +190,12 @@ impl Flow {
                 NEIGHBOURS,
                 i,
             );
-            let Some(motion) = self.fit(&self.starts[i], near) else {
+            let Some(fit) = self.fit(&self.starts[i], near) else {
                 continue;
             };
+            let motion = fit.row(0);
             let dt = self.steps_s[i];
+            gradients.push(fit.fixed_view::<3, 3>(1, 0).norm() * dt);
             let miss = Vector3::new(
                 self.motions[i][0] - motion[0],
                 self.motions[i][1] - motion[1],
@@ -192,12 +206,18 @@ impl Flow {
             across.push(across_sq.sqrt() * rect.focal_px / depth);
             along.push(a.abs() / rect.depth_sigma_m(depth, disparity_sigma_px));
         }
-        (across.len() >= MIN_NEIGHBOURS).then(|| [median(&mut across), median(&mut along)])
+        (across.len() >= MIN_NEIGHBOURS).then(|| {
+            [
+                median(&mut across),
+                median(&mut along),
+                median(&mut gradients),
+            ]
+        })
     }
 
     /// The motion at `p` of an affine fit to the teaching tracks `near` it, refitted without
     /// those that stray far from the first fit.
-    fn fit(&self, p: &Point3<f64>, mut near: Vec<usize>) -> Option<Motion> {
+    fn fit(&self, p: &Point3<f64>, mut near: Vec<usize>) -> Option<SMatrix<f64, 4, 5>> {
         if near.len() < MIN_NEIGHBOURS {
             return None;
         }
@@ -212,9 +232,9 @@ impl Flow {
             .map(|(&i, _)| i)
             .collect();
         if kept.len() == near.len() || kept.len() < MIN_NEIGHBOURS {
-            return Some(first.row(0).into_owned());
+            return Some(first);
         }
-        self.affine(p, &kept).map(|f| f.row(0).into_owned())
+        self.affine(p, &kept)
     }
 
     /// How far teaching track `i`'s world motion strays from an affine `fit` about `p`.
@@ -380,6 +400,14 @@ mod tests {
         let flow = flow_of(&tracks);
         let miss = flow.miss.expect("learnt");
         assert!(miss[0] < 0.01 && miss[1] < 0.01, "{miss:?}");
+        // The steps of a vortex turning 0.2 radians a frame differ by R - I per metre between
+        // particles: a Frobenius norm of 2 sqrt(2) sin(0.1).
+        let gradient = flow.gradient().expect("learnt");
+        let expected = 2.0 * 2f64.sqrt() * 0.1f64.sin();
+        assert!(
+            (gradient - expected).abs() < 1e-3,
+            "{gradient} against {expected}"
+        );
         // Floors keep a perfect flow's tolerance at centroid noise.
         let carried = flow
             .carry(&sample(2, Point3::new(0.0, 0.0, 0.5)), 0.1)

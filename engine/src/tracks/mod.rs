@@ -226,6 +226,9 @@ pub(crate) struct Tracks {
     next_id: u64,
     /// How far the tracks' paths turn per frame (what a rejoin allows for).
     turns: turn::Turns,
+    /// How much neighbouring particles' steps differ per metre between them, as the last flow
+    /// showed: what their votes on each other's steps allow for.
+    flow_gradient: Option<f64>,
 }
 
 impl Tracks {
@@ -247,6 +250,7 @@ impl Tracks {
             retired: Vec::new(),
             next_id: 0,
             turns: turn::Turns::default(),
+            flow_gradient: None,
         }
     }
 
@@ -459,6 +463,9 @@ impl Tracks {
     ) -> usize {
         let flow = (self.config.rejoin_frames > 0 && !births.is_empty())
             .then(|| self.flow_into(seq, &births, &orphans, continued, rect));
+        if let Some(gradient) = flow.as_ref().and_then(flow::Flow::gradient) {
+            self.flow_gradient = Some(gradient);
+        }
         let joins = rejoin::rejoin(
             (&self.config, &self.limits, &self.turns),
             rect,
@@ -532,7 +539,7 @@ impl Tracks {
         let steps = consensus::steps(
             (&before, &known),
             &after,
-            self.limits.max_displacement_px,
+            (self.limits.max_displacement_px, self.flow_gradient),
             rect,
             self.limits.disparity_sigma_px,
         );
