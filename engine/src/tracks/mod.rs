@@ -181,10 +181,10 @@ pub(crate) struct FoundSample {
     pub(crate) camera_tracks: Option<(u64, u64)>,
 }
 
-/// A track of this many samples continued into a frame took a known step (it has a path of its
-/// own; younger ones are carried by the flow, `rejoin`): its step is not put to its
-/// neighbours' vote, but votes itself.
-const KNOWN_STEP_SAMPLES: usize = 3;
+/// Samples from which a track has a path of its own: a younger one is carried by the flow
+/// around it (`rejoin`); an older one continued into a frame took a known step, which is not
+/// put to its neighbours' vote but votes itself (`consensus`).
+const PATH_SAMPLES: usize = 3;
 
 /// Where a 3D track without a pair this frame came from, so it can go back if no new pair
 /// rejoins it.
@@ -525,7 +525,7 @@ impl Tracks {
             }
             if let Some(previous) = previous {
                 before.push(previous);
-                let trusted = track.samples.len() >= KNOWN_STEP_SAMPLES;
+                let trusted = track.samples.len() >= PATH_SAMPLES;
                 known.push((trusted && newest.is_some()).then(|| after.len() - 1));
             }
         }

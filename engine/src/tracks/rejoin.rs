@@ -8,14 +8,10 @@ use nalgebra::Point3;
 
 use super::flow::Flow;
 use super::turn::Turns;
-use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig};
+use super::{Limits, Orphan, Pair, Sample, Track3d, TrackConfig, PATH_SAMPLES};
 use crate::geometry::{RectPoint, Rectification};
 use crate::spatial::{cheapest_first, PointGrid, GRID_CELL_PX};
 use crate::velocity::fit::{fit_line, fit_quadratic};
-
-/// Samples up to which a track is carried by the flow where it is known, not by its own path:
-/// a line through two samples is as good as the link between them.
-const CARRIED_SAMPLES: usize = 2;
 
 /// A rejoin: the orphan a new pair continues and, for a one-sample orphan, the one-sample orphan
 /// of the frame before that completes the path.
@@ -26,12 +22,11 @@ struct Prediction {
     orphan: usize,
     before: Option<usize>,
     world: Point3<f64>,
-    /// In the left image, rectified, and the per-frame image step that led there.
+    /// In the left image, rectified.
     image: RectPoint,
-    step_px: f64,
-    /// Its tolerances across the line of sight (rectified pixels) and along it (depth-noise
-    /// sigmas) where they are the flow's, not the track's own path's.
-    tolerance: Option<[f64; 2]>,
+    /// How far off the pair may lie: across the line of sight (rectified pixels) and along it
+    /// (depth-noise sigmas).
+    tolerance: [f64; 2],
 }
 
 /// The geometry and tolerances rejoining is judged by.
@@ -123,8 +118,7 @@ impl Judge<'_> {
                     before: None,
                     world,
                     image,
-                    step_px,
-                    tolerance: None,
+                    tolerance: self.path_tolerance(step_px),
                 });
             } else if let Some(b) = track.samples.back() {
                 self.lone_paths(o, b, orphans, &lone_grid, t_s, &mut predictions);
@@ -133,8 +127,8 @@ impl Judge<'_> {
         predictions
     }
 
-    /// Where the `flow` carries each young orphan (seen at most [`CARRIED_SAMPLES`] times,
-    /// the last time in the frame before `seq`): too young for a path of its own.
+    /// Where the `flow` carries each young orphan (seen fewer than [`PATH_SAMPLES`] times, the
+    /// last time in the frame before `seq`): too young for a path of its own.
     fn carried(
         &self,
         flow: &Flow,
@@ -146,7 +140,7 @@ impl Judge<'_> {
             .enumerate()
             .filter_map(|(o, (_, track))| {
                 let last = track.samples.back()?;
-                if track.samples.len() > CARRIED_SAMPLES || last.seq + 1 != seq {
+                if track.samples.len() >= PATH_SAMPLES || last.seq + 1 != seq {
                     return None;
                 }
                 let carried = flow.carry(last, t_s)?;
@@ -155,9 +149,7 @@ impl Judge<'_> {
                     before: None,
                     world: carried.world,
                     image: carried.image,
-                    step_px: (carried.image.x - last.left_rect.x)
-                        .hypot(carried.image.y - last.left_rect.y),
-                    tolerance: Some([carried.across_px, carried.along_sigmas]),
+                    tolerance: [carried.across_px, carried.along_sigmas],
                 })
             })
             .collect()
@@ -196,15 +188,26 @@ impl Judge<'_> {
                 before: Some(*a),
                 world,
                 image,
-                step_px,
-                tolerance: None,
+                tolerance: self.path_tolerance(step_px),
             });
         }
     }
 
-    /// Depth noise allowed along the line of sight at `depth_m`, metres.
-    fn along_scale(&self, depth_m: f64) -> f64 {
-        self.config.rejoin_tolerance_sigmas
+    /// The tolerances of a prediction from a track's own path, whose per-frame image step was
+    /// `step_px`: it misses by about the change in velocity over a frame, which grows with the
+    /// step (a vortex turns its particles by a fixed angle per frame).
+    fn path_tolerance(&self, step_px: f64) -> [f64; 2] {
+        [
+            self.config
+                .rejoin_tolerance_px
+                .max(self.turn_per_frame * step_px),
+            self.config.rejoin_tolerance_sigmas,
+        ]
+    }
+
+    /// `sigmas` of depth noise along the line of sight at `depth_m`, metres.
+    fn along_m(&self, sigmas: f64, depth_m: f64) -> f64 {
+        sigmas
             * self
                 .rect
                 .depth_sigma_m(depth_m, self.limits.disparity_sigma_px)
@@ -232,27 +235,10 @@ impl Judge<'_> {
         };
         let mut candidates = Vec::new();
         for (h, p) in predictions.iter().enumerate() {
-            // A prediction misses by about the change in velocity over a frame, which grows
-            // with the step (a vortex turns its particles by a fixed angle per frame); the
-            // flow's by what it was seen to miss.
-            let across_px = match p.tolerance {
-                Some([across_px, _]) => across_px,
-                None => self
-                    .config
-                    .rejoin_tolerance_px
-                    .max(self.turn_per_frame * p.step_px),
-            };
+            let [across_px, along_sigmas] = p.tolerance;
             for (_, b) in birth_grid.near(p.image.x, p.image.y, 2.0 * across_px) {
                 let sample = &births[*b].sample;
-                let along_m = match p.tolerance {
-                    Some([_, sigmas]) => {
-                        sigmas
-                            * self
-                                .rect
-                                .depth_sigma_m(sample.depth_m, self.limits.disparity_sigma_px)
-                    }
-                    None => self.along_scale(sample.depth_m),
-                };
+                let along_m = self.along_m(along_sigmas, sample.depth_m);
                 let c = cost(sample, &p.world, across_px, along_m);
                 if c <= 1.0 {
                     candidates.push((c, *b, h));
@@ -293,15 +279,15 @@ impl Judge<'_> {
                 / self.rect.focal_px;
             let (along, _) =
                 sample.along_and_across_sq(&(sample.point_in_world - last.point_in_world));
-            let c = (along.abs() / (self.along_scale(sample.depth_m) + moved_m)).powi(2);
+            let along_m = self.along_m(self.config.rejoin_tolerance_sigmas, sample.depth_m);
+            let c = (along.abs() / (along_m + moved_m)).powi(2);
             if c <= 1.0 {
                 predictions.push(Prediction {
                     orphan: o,
                     before: None,
                     world: last.point_in_world,
                     image: last.left_rect,
-                    step_px: 0.0,
-                    tolerance: None,
+                    tolerance: self.path_tolerance(0.0),
                 });
                 candidates.push((c, b, predictions.len() - 1));
             }
