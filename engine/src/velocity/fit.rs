@@ -438,9 +438,9 @@ struct Candidate {
 /// term (a changing acceleration) into its velocity. The cubic over the widest window estimates
 /// that term and the noise (its residuals); from them each candidate's error is predicted as
 /// `bias^2 + variance`, the cubic term's own noise discounted so a straight path is not read as
-/// curved (and ignored unless it is far above that noise). Falls back to the widest quadratic
-/// when the samples cannot support a cubic. The reported residual is the widest quadratic's, as
-/// the smoothness check expects.
+/// curved (and ignored unless it is far above that noise). Where the samples cannot support a
+/// cubic with residual degrees of freedom, the short window's own choice ([`fit_short`]). The
+/// reported residual is the widest quadratic's, as the smoothness check expects.
 ///
 /// `past`, where given, is a window reaching further back than M (and M ahead): a straight line
 /// through it joins the candidates, its bias predicted from the acceleration its own quadratic
@@ -454,12 +454,7 @@ pub fn fit_adaptive(
 ) -> Option<AdaptiveFit> {
     let widest = windows.last()?;
     let Some(choices) = Choices::new(windows, past, t_eval_s) else {
-        let fit = widest.quadratic.motion();
-        let choice = [FitChoice {
-            half_window_frames: widest.half_window_frames as u8,
-            order: 2,
-        }; 3];
-        return fit.finite().map(|fit| AdaptiveFit { fit, choice });
+        return fit_short(widest, t_eval_s);
     };
     let noise = choices.cubic.noise_variance();
     let mut position = Vector3::zeros();
@@ -495,6 +490,131 @@ pub fn fit_adaptive(
     }
     .finite()
     .map(|fit| AdaptiveFit { fit, choice })
+}
+
+/// The fit of a window too short for a cubic with residual degrees of freedom (fewer than
+/// seven samples: a fast particle seen for a few frames), chosen per component among the
+/// quadratic over the whole window, the cubic through the same samples and the quadratic
+/// through the three samples nearest the centre (the position is the quadratic's). Their
+/// biases are stated from the path's turning rate as the quadratic shows it: a path turning at
+/// rate w has a cubic term of w^2/6 of its velocity and a fifth-order one of w^4/120 (exactly
+/// so on a circle), so the quadratic over +-2 frames, which takes in 3.4 times the cubic term,
+/// is 5 % slow on a path turning by 0.3 rad a frame, and its three innermost samples 1.5 %.
+fn fit_short(widest: &QuadraticWindow, t_eval_s: f64) -> Option<AdaptiveFit> {
+    let quadratic = &widest.quadratic;
+    let (noise, turning) = short_noise_and_turning(quadratic);
+    let whole = FitChoice {
+        half_window_frames: widest.half_window_frames as u8,
+        order: 2,
+    };
+    let others = other_short_fits(widest, t_eval_s);
+    let fits: Vec<(&PolynomialFit, FitChoice)> = std::iter::once((quadratic, whole))
+        .chain(others.iter().map(|(f, c)| (f, *c)))
+        .collect();
+    let sensitivities: Vec<Sensitivity> = fits.iter().map(|(f, _)| f.sensitivity()).collect();
+    let mut motion = quadratic.motion();
+    motion.error.noise_variance = noise;
+    let mut choice = [whole; 3];
+    for c in 0..3 {
+        let speed = quadratic.velocity(c);
+        let (cubic_term, fifth_term) = (turning * speed / 6.0, turning * turning * speed / 120.0);
+        let expected = |k: usize| {
+            let per_term = &sensitivities[k].velocity.per_term;
+            (per_term[3] * cubic_term + per_term[5] * fifth_term).powi(2)
+                + fits[k].0.velocity_variance(noise[c])
+        };
+        let best = (0..fits.len())
+            .min_by(|&a, &b| expected(a).total_cmp(&expected(b)))
+            .unwrap_or(0);
+        motion.velocity[c] = fits[best].0.velocity(c);
+        choice[c] = fits[best].1;
+        motion.error.cubic_term[c] = cubic_term;
+        // The position stays the whole window's quadratic's: at the centre of a symmetric
+        // window no odd term biases it, and it averages the most noise.
+        let fourth_term = quadratic
+            .quadratic_term(c, noise[c])
+            .map_or(0.0, |(q, _)| turning * q / 12.0);
+        let budgets = [
+            (&sensitivities[best], fifth_term),
+            (&sensitivities[0], fourth_term),
+        ];
+        set_short_budget(&mut motion.error, c, budgets);
+    }
+    motion.finite().map(|fit| AdaptiveFit { fit, choice })
+}
+
+/// The fits a short window's quadratic competes with: the cubic through its samples (where
+/// they leave it a residual degree of freedom) and the quadratic through its three innermost.
+fn other_short_fits(widest: &QuadraticWindow, t_eval_s: f64) -> Vec<(PolynomialFit, FitChoice)> {
+    let cubic = PolynomialFit::new(&widest.samples, t_eval_s, 3)
+        .filter(|c| c.dof() > 0)
+        .map(|cubic| {
+            let choice = FitChoice {
+                half_window_frames: widest.half_window_frames as u8,
+                order: 3,
+            };
+            (cubic, choice)
+        });
+    let inner = innermost_quadratic(&widest.samples, t_eval_s).map(|inner| {
+        let choice = FitChoice {
+            half_window_frames: 1,
+            order: 2,
+        };
+        (inner, choice)
+    });
+    cubic.into_iter().chain(inner).collect()
+}
+
+/// Component `c` of a short fit's budget: for the velocity and for the position, the fit's noise
+/// gain, the cubic term it takes in (the budget holds the term) and the bias the turning path's
+/// next term leaves it (fifth-order for the velocity, fourth-order for the position), each
+/// given as the fit's sensitivity and that term.
+fn set_short_budget(error: &mut UncertaintyBudget, c: usize, budgets: [(&Sensitivity, f64); 2]) {
+    let [(velocity, fifth_term), (position, fourth_term)] = budgets;
+    let component = |response: &TermResponse, power: usize, term: f64| ComponentBudget {
+        noise_gain: response.gain,
+        bias_sq: (response.per_term[power] * term).powi(2),
+        cubic_absorption: response.per_term[3],
+        misfit_gain: 0.0,
+    };
+    error
+        .velocity
+        .set_component(c, component(&velocity.velocity, 5, fifth_term));
+    error
+        .position
+        .set_component(c, component(&position.position, 4, fourth_term));
+}
+
+/// A short window's sample noise and its path's turning rate squared. On a turning path the
+/// quadratic's residuals hold the cubic term it cannot follow as well as the noise: read as
+/// noise, the misfit would hide the turn. So the turning rate is read with the residuals as
+/// noise, the misfit that turn leaves taken out of them, and the rate read again.
+fn short_noise_and_turning(quadratic: &PolynomialFit) -> (Vector3<f64>, f64) {
+    let unfollowed = quadratic.sensitivity().unfollowed_norm_sq[3];
+    let dof = quadratic.dof().max(1) as f64;
+    let mut noise = quadratic.noise_variance();
+    let mut turning = turning_rate_sq(quadratic, &noise);
+    for _ in 0..2 {
+        noise = Vector3::from_fn(|c, _| {
+            let cubic_term = turning * quadratic.velocity(c) / 6.0;
+            (quadratic.squared_residuals[c] - unfollowed * cubic_term * cubic_term).max(0.0) / dof
+        });
+        turning = turning_rate_sq(quadratic, &noise);
+    }
+    (noise, turning)
+}
+
+/// The quadratic through the sample at `t_eval_s`'s frame and the one each side of it (the
+/// three nearest in time, where they straddle it).
+fn innermost_quadratic(samples: &[(f64, Point3<f64>)], t_eval_s: f64) -> Option<PolynomialFit> {
+    let mut nearest: Vec<(f64, Point3<f64>)> = samples.to_vec();
+    nearest.sort_by(|a, b| (a.0 - t_eval_s).abs().total_cmp(&(b.0 - t_eval_s).abs()));
+    nearest.truncate(3);
+    let straddles =
+        nearest.iter().any(|s| s.0 < t_eval_s) && nearest.iter().any(|s| s.0 > t_eval_s);
+    (nearest.len() == 3 && straddles)
+        .then(|| PolynomialFit::new(&nearest, t_eval_s, 2))
+        .flatten()
 }
 
 /// The candidate fits of a track's windows, fitted once for all three components.
@@ -549,7 +669,7 @@ impl<'a> Choices<'a> {
             let sensitivity = line.sensitivity();
             Some((p, line, sensitivity))
         });
-        let turning = turning_rate_sq(&widest.quadratic, &cubic);
+        let turning = turning_rate_sq(&widest.quadratic, &cubic.noise_variance());
         let scale3 = cubic.scale_s.powi(3);
         let cubic_term_gain = cubic.inverse_normal[(3, 3)] / (scale3 * scale3);
         Some(Self {
@@ -697,9 +817,8 @@ impl<'a> Choices<'a> {
 
 /// The square of the rate at which the path turns (or changes speed), per second: its
 /// acceleration over its speed, from the widest quadratic's terms with their noise taken out
-/// (`noise` gives the sample noise); 0 where the path is straight or at rest.
-fn turning_rate_sq(quadratic: &PolynomialFit, noise: &PolynomialFit) -> f64 {
-    let sigma2 = noise.noise_variance();
+/// (`sigma2`, the sample noise variance per component); 0 where the path is straight or at rest.
+fn turning_rate_sq(quadratic: &PolynomialFit, sigma2: &Vector3<f64>) -> f64 {
     let mut acceleration_sq = 0.0;
     let mut speed_sq = 0.0;
     for c in 0..3 {
@@ -992,6 +1111,61 @@ mod tests {
         assert!((quadratic.velocity.x - 0.3).abs() > 0.05, "{quadratic:?}");
         assert!((chosen.fit.velocity.x - 0.3).abs() < 0.01, "{chosen:?}");
         assert!(chosen.choice[0].order == 3 || chosen.choice[0].half_window_frames < 5);
+    }
+
+    /// A particle on a circle at 30 Hz, moving 3 cm and turning by `turn` radians a frame, seen
+    /// for the five frames around the centre, with `noise_m` of noise: its +-2 window, and its
+    /// velocity at the centre.
+    fn short_circle(turn: f64, noise_m: f64) -> (QuadraticWindow, Vector3<f64>) {
+        let (dt, step_m, phase): (f64, f64, f64) = (1.0 / 30.0, 0.03, 0.4);
+        let (omega, radius) = (turn / dt, step_m / turn);
+        let centre = Point3::new(-radius * phase.cos(), -radius * phase.sin(), 0.5);
+        let noise = |k: i32| noise_m * f64::from((k * 7919).rem_euclid(13) - 6) / 6.0;
+        let samples = (-2..=2)
+            .map(|k| {
+                let t = f64::from(k) * dt;
+                let angle = omega * t + phase;
+                let p = centre + Vector3::new(angle.cos(), angle.sin(), 0.0) * radius;
+                (t, p + Vector3::repeat(noise(k)))
+            })
+            .collect();
+        let velocity = Vector3::new(-phase.sin(), phase.cos(), 0.0) * radius * omega;
+        (
+            QuadraticWindow::new(2, samples, 0.0).expect("fit"),
+            velocity,
+        )
+    }
+
+    /// A vortex turning its particles by 0.3 rad a frame: the quadratic over the five frames
+    /// around the centre is 5 % slow; the fit chosen for so short a window follows the turn.
+    #[test]
+    fn a_fast_turning_particle_seen_for_five_frames_gets_an_unbiased_velocity() {
+        let (window, truth) = short_circle(0.3, 1e-5);
+        let quadratic = window.motion().expect("fit");
+        let chosen = fit_adaptive(std::slice::from_ref(&window), None, 0.0).expect("fit");
+        let relative = |v: Vector3<f64>| (v - truth).norm() / truth.norm();
+        assert!(relative(quadratic.velocity) > 0.04, "{quadratic:?}");
+        assert!(relative(chosen.fit.velocity) < 0.01, "{chosen:?}");
+        // The stated error covers the chosen fit's.
+        let (stated, _) = chosen.fit.error.sigmas(None);
+        assert!(
+            (chosen.fit.velocity - truth).norm() < 3.0 * stated.norm(),
+            "{stated:?}"
+        );
+    }
+
+    /// A straight path seen for five frames keeps the quadratic over all of them: the fits
+    /// that follow a turn only add noise there.
+    #[test]
+    fn a_straight_path_seen_for_five_frames_keeps_its_quadratic() {
+        let (window, truth) = short_circle(1e-6, 1e-3);
+        let chosen = fit_adaptive(std::slice::from_ref(&window), None, 0.0).expect("fit");
+        let whole = FitChoice {
+            half_window_frames: 2,
+            order: 2,
+        };
+        assert_eq!(chosen.choice, [whole; 3]);
+        assert!((chosen.fit.velocity - truth).norm() < 0.05 * truth.norm());
     }
 
     /// Samples from `past` frames before the centre to `m` after it, with the same noise
