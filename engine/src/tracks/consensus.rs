@@ -42,11 +42,12 @@ struct Candidates {
 }
 
 /// The step (index into `after`) each of `before` took: the `known` one (a settled track's), or
-/// else by consensus, where one is clear: `(before, after)` pairs. Candidates lie within
-/// `reach_px` in the left image (rectification `rect`, depth model `disparity_sigma_px`).
+/// else by consensus, where one is clear: `(before, after)` pairs (`after_grid` indexes `after`
+/// by their left image points). Candidates lie within `reach_px` in the left image
+/// (rectification `rect`, depth model `disparity_sigma_px`).
 pub(super) fn steps(
     (before, known): (&[&Sample], &[Option<usize>]),
-    after: &[&Sample],
+    (after, after_grid): (&[&Sample], &PointGrid),
     (reach_px, gradient): (f64, Option<f64>),
     rect: &Rectification,
     disparity_sigma_px: f64,
@@ -54,7 +55,6 @@ pub(super) fn steps(
     if before.len() <= NEIGHBOURS || after.is_empty() {
         return Vec::new();
     }
-    let after_grid = PointGrid::new(after.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
     let before_grid = PointGrid::new(before.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
     let after_positions: Vec<Point3<f64>> = after.iter().map(|s| s.point_in_world).collect();
     let candidates: Vec<Candidates> = before
@@ -65,7 +65,7 @@ pub(super) fn steps(
                 steps: vec![(*j, after[*j].point_in_world - a.point_in_world)],
                 reach_m: reach_m(a, reach_px, rect),
             },
-            None => candidates_of(a, (&after_grid, &after_positions), after, reach_px, rect),
+            None => candidates_of(a, (after_grid, &after_positions), after, reach_px, rect),
         })
         .collect();
     let positions: Vec<Point3<f64>> = before.iter().map(|s| s.point_in_world).collect();
@@ -255,7 +255,14 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let (b, a): (Vec<&Sample>, Vec<&Sample>) =
             (before.iter().collect(), after.iter().collect());
-        let steps = steps((&b, &vec![None; b.len()]), &a, (100.0, None), &rect, 0.1);
+        let grid = grid_of(&a);
+        let steps = steps(
+            (&b, &vec![None; b.len()]),
+            (&a, &grid),
+            (100.0, None),
+            &rect,
+            0.1,
+        );
         let right = steps.iter().filter(|(i, j)| i == j).count();
         assert!(right >= 75, "{right} of {} right", before.len());
         assert_eq!(right, steps.len(), "no wrong step: {steps:?}");
@@ -277,6 +284,18 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let b: Vec<&Sample> = before.iter().take(NEIGHBOURS).collect();
         let a: Vec<&Sample> = after.iter().collect();
-        assert!(steps((&b, &vec![None; b.len()]), &a, (100.0, None), &rect, 0.1).is_empty());
+        let grid = grid_of(&a);
+        let steps = steps(
+            (&b, &vec![None; b.len()]),
+            (&a, &grid),
+            (100.0, None),
+            &rect,
+            0.1,
+        );
+        assert!(steps.is_empty());
+    }
+
+    fn grid_of(samples: &[&Sample]) -> PointGrid {
+        PointGrid::new(samples.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX)
     }
 }

@@ -536,16 +536,17 @@ impl Tracks {
             }
         }
         after.extend(births.iter().map(|b| &b.sample).filter(|s| seen(s)));
+        let after_grid = PointGrid::new(after.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
         let steps = consensus::steps(
             (&before, &known),
-            &after,
+            (&after, &after_grid),
             (self.limits.max_displacement_px, self.flow_gradient),
             rect,
             self.limits.disparity_sigma_px,
         );
         flow::Flow::of(
             steps.into_iter().map(|(i, j)| (before[i], after[j])),
-            image_spacing_px(&after),
+            image_spacing_px(&after, &after_grid),
             rect,
             self.limits.disparity_sigma_px,
         )
@@ -573,9 +574,9 @@ impl Tracks {
     }
 }
 
-/// The median distance in the left image from each of `samples` to its nearest neighbour.
-fn image_spacing_px(samples: &[&Sample]) -> f64 {
-    let grid = PointGrid::new(samples.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
+/// The median distance in the left image from each of `samples` to its nearest neighbour
+/// (`grid` indexes them by their left image points).
+fn image_spacing_px(samples: &[&Sample], grid: &PointGrid) -> f64 {
     let mut distances: Vec<f64> = samples
         .iter()
         .enumerate()

@@ -502,7 +502,6 @@ pub fn fit_adaptive(
 /// is 5 % slow on a path turning by 0.3 rad a frame, and its three innermost samples 1.5 %.
 fn fit_short(widest: &QuadraticWindow, t_eval_s: f64) -> Option<AdaptiveFit> {
     let quadratic = &widest.quadratic;
-    let (noise, turning) = short_noise_and_turning(quadratic);
     let whole = FitChoice {
         half_window_frames: widest.half_window_frames as u8,
         order: 2,
@@ -512,6 +511,7 @@ fn fit_short(widest: &QuadraticWindow, t_eval_s: f64) -> Option<AdaptiveFit> {
         .chain(others.iter().map(|(f, c)| (f, *c)))
         .collect();
     let sensitivities: Vec<Sensitivity> = fits.iter().map(|(f, _)| f.sensitivity()).collect();
+    let (noise, turning) = short_noise_and_turning(quadratic, &sensitivities[0]);
     let mut motion = quadratic.motion();
     motion.error.noise_variance = noise;
     let mut choice = [whole; 3];
@@ -588,9 +588,13 @@ fn set_short_budget(error: &mut UncertaintyBudget, c: usize, budgets: [(&Sensiti
 /// A short window's sample noise and its path's turning rate squared. On a turning path the
 /// quadratic's residuals hold the cubic term it cannot follow as well as the noise: read as
 /// noise, the misfit would hide the turn. So the turning rate is read with the residuals as
-/// noise, the misfit that turn leaves taken out of them, and the rate read again.
-fn short_noise_and_turning(quadratic: &PolynomialFit) -> (Vector3<f64>, f64) {
-    let unfollowed = quadratic.sensitivity().unfollowed_norm_sq[3];
+/// noise, the misfit that turn leaves taken out of them (by the quadratic's `sensitivity`), and
+/// the rate read again.
+fn short_noise_and_turning(
+    quadratic: &PolynomialFit,
+    sensitivity: &Sensitivity,
+) -> (Vector3<f64>, f64) {
+    let unfollowed = sensitivity.unfollowed_norm_sq[3];
     let dof = quadratic.dof().max(1) as f64;
     let mut noise = quadratic.noise_variance();
     let mut turning = turning_rate_sq(quadratic, &noise);
