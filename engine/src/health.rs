@@ -99,15 +99,16 @@ impl<'a> Words<'a> {
         let velocity = &config.velocity;
         let window = 2 * velocity.half_window_frames + 1;
         // A fast particle may have its velocity from as few as five frames.
-        let shortest_window = if velocity.min_window_travel_px > 0.0 {
-            window.min(5)
-        } else {
-            window
-        };
+        let shortest_window =
+            if velocity.min_window_travel_px > 0.0 || velocity.max_residual_ratio > 0.0 {
+                window.min(5)
+            } else {
+                window
+            };
         let windows = if shortest_window < window {
             format!(
-                "{shortest_window} to {window} frames (narrower where a particle crosses {} px \
-                 within it)",
+                "{shortest_window} to {window} frames (narrower where a particle travels {} px \
+                 within it, or turns faster than a wider window follows)",
                 velocity.min_window_travel_px
             )
         } else {

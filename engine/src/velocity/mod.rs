@@ -47,10 +47,12 @@ pub struct VelocityConfig {
     /// the track's own residuals predict to be most accurate. Off: the method's quadratic over
     /// +-M.
     pub adaptive_fit: bool,
-    /// A window narrower than +-M is allowed (down to +-2) when the particle crosses at least
-    /// this many pixels within it: precision then comes from the distance travelled, not the
-    /// frame count, and a fast particle that is in view for only a few frames still gets
-    /// vectors. 0: always +-M (with `max_missing_per_side`).
+    /// A window narrower than +-M is allowed (down to +-2) when the particle travels at least
+    /// this many pixels within it (along its path): precision then comes from the distance
+    /// travelled, not the frame count, and a fast particle that is in view for only a few
+    /// frames still gets vectors. Where every window so allowed strays from its quadratic (a
+    /// fast-turning path), narrower ones down to +-2 are tried. 0: always +-M (with
+    /// `max_missing_per_side`), narrower only where every window is rough.
     pub min_window_travel_px: f64,
     /// With `adaptive_fit`, a straight line from this many frames before the centre to M after
     /// it joins the candidate fits, chosen where the track's own acceleration, lost in its
@@ -187,6 +189,10 @@ struct Centred {
 
 /// Tracks per parallel task when judging a frame's tracks: a track's fits are small.
 const TRACKS_PER_TASK: usize = 32;
+
+/// The narrowest half-window a centred velocity is fitted over, frames: a quadratic through
+/// five samples keeps two degrees of freedom to judge its smoothness by.
+const MIN_HALF_WINDOW: u64 = 2;
 
 /// One track's vectors for a frame, as [`Velocities::judge`] found them.
 struct Judged {
@@ -479,8 +485,8 @@ impl Velocities {
     /// `Err` if rejected as rough. The centre frame must be seen, and each side of a window of
     /// `+-w` frames may miss at most `max_missing_per_side` frames (to a gap, or to the track's
     /// start or end; a narrower window may miss none), and as many again seen by one camera
-    /// only ([`Self::fills`]). `w` is M, or narrower down to 2 where the particle crosses
-    /// `min_window_travel_px` within it; with `adaptive_fit` the fit is chosen per component
+    /// only ([`Self::fills`]). `w` is M, or narrower down to 2 where the particle travels
+    /// `min_window_travel_px` within it or every wider window is rough; with `adaptive_fit` the fit is chosen per component
     /// among the windows the track supports (returned with the vector).
     fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<Centred, ()>> {
         let velocity = &self.config;
@@ -537,19 +543,18 @@ impl Velocities {
         centre: &Sample,
         worst: Separation,
     ) -> (Vec<QuadraticWindow>, bool) {
-        let velocity = &self.config;
-        let m = velocity.half_window_frames as u64;
-        let centre_seq = centre.seq;
+        let m = self.config.half_window_frames as u64;
         let usable_within = |w: u64| {
             track
                 .samples
                 .iter()
-                .filter(move |s| usable(s, worst) && s.seq.abs_diff(centre_seq) <= w)
+                .filter(move |s| usable(s, worst) && s.seq.abs_diff(centre.seq) <= w)
+                .collect::<Vec<&Sample>>()
         };
         // Fitted samples enter full windows only: in a narrowed one the few samples cannot show
         // a fit that swapped two crossing particles.
         let narrowest = if worst == Separation::Clear {
-            self.narrowest_window(usable_within(m), m)
+            self.narrowest_window(&usable_within(m), m)
         } else {
             m
         };
@@ -559,29 +564,49 @@ impl Velocities {
         let mut windows = Vec::new();
         let mut any_supported = false;
         for w in narrowest..=m {
-            let samples: Vec<&Sample> = usable_within(w).collect();
-            // A narrowed window is complete: it has few samples to spare, and a quadratic through
-            // three or four of them says nothing about the track's smoothness.
-            let needed = if w < m {
-                w
-            } else {
-                w.saturating_sub(velocity.max_missing_per_side as u64)
-                    .max(1)
-            };
-            if !Self::fills(&samples, centre_seq, [needed; 2], w.saturating_sub(needed)) {
-                continue;
+            match self.window_of(usable_within(w), centre, w) {
+                Some(Ok(window)) => windows.push(window),
+                Some(Err(())) => any_supported = true,
+                None => {}
             }
-            any_supported = true;
-            // Ill-posed only without distinct sample times, which the counts above exclude.
-            let Some(window) = fit_window(w as usize, &samples, centre.t_s) else {
-                continue;
-            };
-            if self.is_rough(&samples, &window, centre.depth_m) {
-                continue;
+        }
+        any_supported |= !windows.is_empty();
+        // Every window the particle's travel allows strays from its quadratic: a path that
+        // turns faster than a quadratic follows over them (a vortex), or a stray sample in all
+        // of them. Narrower clean windows follow the one and end before the other.
+        if windows.is_empty() && any_supported && worst == Separation::Clear {
+            for w in MIN_HALF_WINDOW.min(narrowest)..narrowest {
+                if let Some(Ok(window)) = self.window_of(usable_within(w), centre, w) {
+                    windows.push(window);
+                }
             }
-            windows.push(window);
         }
         (windows, any_supported)
+    }
+
+    /// The half-window `w` fitted around `centre` through `samples` (those within it): `None`
+    /// where they do not fill it, `Err` where they stray from a smooth path.
+    fn window_of(
+        &self,
+        samples: Vec<&Sample>,
+        centre: &Sample,
+        w: u64,
+    ) -> Option<Result<QuadraticWindow, ()>> {
+        // A narrowed window is complete: it has few samples to spare, and a quadratic through
+        // three or four of them says nothing about the track's smoothness.
+        let needed = if w < self.config.half_window_frames as u64 {
+            w
+        } else {
+            w.saturating_sub(self.config.max_missing_per_side as u64)
+                .max(1)
+        };
+        if !Self::fills(&samples, centre.seq, [needed; 2], w.saturating_sub(needed)) {
+            return None;
+        }
+        // Ill-posed only without distinct sample times, which the counts above exclude.
+        let window = fit_window(w as usize, &samples, centre.t_s)
+            .filter(|window| !self.is_rough(&samples, window, centre.depth_m));
+        Some(window.ok_or(()))
     }
 
     /// Whether a window's samples fill it: `needed` samples before and after the centre, of
@@ -642,24 +667,30 @@ impl Velocities {
     }
 
     /// The narrowest half-window (2..=m) a track's samples may be fitted over: the particle must
-    /// cross `min_window_travel_px` within it, judged from its mean image speed over `samples`.
-    fn narrowest_window<'a>(&self, samples: impl Iterator<Item = &'a Sample>, m: u64) -> u64 {
+    /// travel `min_window_travel_px` within it, judged from its mean image speed over `samples`
+    /// along its path (a vortex's particle comes back near where it was: the chord would say
+    /// it barely moved).
+    fn narrowest_window(&self, samples: &[&Sample], m: u64) -> u64 {
         let travel_px = self.config.min_window_travel_px;
-        let mut samples = samples;
-        let Some(first) = samples.next() else {
-            return m;
+        let (mut first, mut last, mut path_px) = (None::<u64>, None::<&Sample>, 0.0);
+        for &s in samples {
+            if let Some(l) = last {
+                path_px += (s.left_rect.x - l.left_rect.x).hypot(s.left_rect.y - l.left_rect.y);
+            }
+            first.get_or_insert(s.seq);
+            last = Some(s);
+        }
+        let frames = match (first, last) {
+            (Some(first), Some(last)) if last.seq > first => last.seq - first,
+            _ => return m,
         };
-        let Some(last) = samples.last() else {
-            return m;
-        };
-        if travel_px <= 0.0 || last.seq == first.seq {
+        if travel_px <= 0.0 {
             return m;
         }
-        let (a, b) = (first.left_rect, last.left_rect);
-        let speed_px = (b.x - a.x).hypot(b.y - a.y) / (last.seq - first.seq) as f64;
+        let speed_px = path_px / frames as f64;
         let frames_each_side = (travel_px / (2.0 * speed_px)).ceil();
         if frames_each_side.is_finite() {
-            (frames_each_side as u64).clamp(2.min(m), m)
+            (frames_each_side as u64).clamp(MIN_HALF_WINDOW.min(m), m)
         } else {
             m
         }
@@ -815,5 +846,73 @@ mod tests {
         assert!(at_centre(&track(&[], &[2, 4])).is_none());
         // One missing and one hidden is within the allowance.
         assert!(at_centre(&track(&[4], &[2])).flatten().is_some());
+    }
+
+    /// Frames 1 to 11 of a particle on a circle half a metre from the left camera, turning
+    /// `turn` radians a frame and moving `step_px` pixels a frame in the image.
+    fn circling(rect: &Rectification, turn: f64, step_px: f64) -> (Track3d, Vector3<f64>) {
+        let (depth, frame_s) = (0.5, 1.0 / 30.0);
+        let radius = step_px / turn * depth / rect.focal_px;
+        let rate = turn / frame_s;
+        let at = |t: f64| Point3::new(radius * (rate * t).cos(), radius * (rate * t).sin(), depth);
+        let samples = (1..=11)
+            .map(|seq| {
+                let t_s = seq as f64 * frame_s;
+                let p = at(t_s);
+                Sample {
+                    seq,
+                    frame_index: seq,
+                    t_s,
+                    point_in_world: p,
+                    depth_m: depth,
+                    separation: Separation::Clear,
+                    left_rect: RectPoint {
+                        x: rect.focal_px * p.x / depth,
+                        y: rect.focal_px * p.y / depth,
+                    },
+                    camera_in_world: Point3::origin(),
+                    seen_from: None,
+                }
+            })
+            .collect();
+        let t_centre = 6.0 * frame_s;
+        let truth = Vector3::new(
+            -radius * rate * (rate * t_centre).sin(),
+            radius * rate * (rate * t_centre).cos(),
+            0.0,
+        );
+        let track = Track3d {
+            samples,
+            ..Track3d::new(1, 1)
+        };
+        (track, truth)
+    }
+
+    #[test]
+    fn a_path_turning_faster_than_its_travel_windows_follow_is_measured_over_a_narrower_one() {
+        let rect = Rectification::new(&ScenarioSpec::new(Scenario::Flume).rig).expect("rectifies");
+        let velocities = Velocities::new(&VelocityConfig::default(), &rect, 640, 480);
+        // 14 px a frame: the travel asks for +-3 frames at least, over which a quadratic
+        // cannot follow a path turning half a radian a frame.
+        let (track, truth) = circling(&rect, 0.5, 14.0);
+        let centre = &track.samples[5];
+        let m = velocities.config.half_window_frames as u64;
+        let all: Vec<&Sample> = track.samples.iter().collect();
+        assert_eq!(velocities.narrowest_window(&all, m), 3);
+        for w in 3..=m {
+            let within: Vec<&Sample> = track
+                .samples
+                .iter()
+                .filter(|s| s.seq.abs_diff(centre.seq) <= w)
+                .collect();
+            assert!(matches!(
+                velocities.window_of(within, centre, w),
+                Some(Err(()))
+            ));
+        }
+        let found = velocities.centred_vector(&track, 11).expect("a centre");
+        let v = found.expect("measured, not rejected as rough").vector;
+        let error = (v.velocity_in_world - truth).norm() / truth.norm();
+        assert!(error < 0.01, "{error}");
     }
 }
