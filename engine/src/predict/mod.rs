@@ -174,7 +174,8 @@ pub(crate) fn predict<'a>(
         .filter(|(_, t)| seq - t.last_seq() <= max_gap_frames + 1)
         .collect();
     let views: Vec<&Track3d> = recent.iter().map(|(_, t)| &**t).collect();
-    let neighbours = Neighbours::of(&views, MIN_SAMPLES);
+    let neighbours = Neighbours::of(&views, MIN_SAMPLES, rect.focal_px);
+    let widest = image_radius_px.max(MIN_GATE_PX);
     // Each track predicts on its own: both cores where they hold tracks enough (see
     // [`TRACKS_PER_TASK`]), in the tracks' order.
     let predicted: Vec<(Prediction, Option<f64>)> = recent
@@ -182,7 +183,7 @@ pub(crate) fn predict<'a>(
         .with_min_len(TRACKS_PER_TASK)
         .enumerate()
         .filter_map(|(i, (key, track))| {
-            let p = predict_one(track, i, &neighbours, (seq, t_s))?;
+            let p = predict_one(track, i, (&neighbours, widest), (seq, t_s))?;
             let (left, right) = rect.project(&(rig_from_world * p))?;
             let prediction = Prediction {
                 key,
@@ -199,7 +200,6 @@ pub(crate) fn predict<'a>(
     } else {
         median(&mut own)
     };
-    let widest = image_radius_px.max(MIN_GATE_PX);
     predicted
         .into_iter()
         .map(|(p, sigma)| {
@@ -214,18 +214,19 @@ pub(crate) fn predict<'a>(
 
 /// Where a track (the `own`-th the `neighbours` were built from) puts its particle at
 /// frame `seq`, time `t_s`, in the world, if it predicts at all: trusted on its own samples
-/// or vouched for by its neighbours, or carried by their flow; the predictions it makes are
-/// kept to be scored when it is found.
+/// or vouched for by its neighbours, or carried by their flow where that flow predicts its
+/// neighbours within `widest_px` (the widest gate); the predictions it makes are kept to be
+/// scored when it is found.
 fn predict_one(
     track: &mut Track3d,
     own: usize,
-    neighbours: &Neighbours,
+    (neighbours, widest_px): (&Neighbours, f64),
     (seq, t_s): (u64, f64),
 ) -> Option<Point3<f64>> {
     let n = track.samples.len();
     let trusted = n >= MIN_SAMPLES || (n >= YOUNG_SAMPLES && neighbours.vouch_for(track, own));
     let carried = (!trusted && n < YOUNG_SAMPLES)
-        .then(|| neighbours.carry(track, own, t_s))
+        .then(|| neighbours.carry(track, own, t_s, widest_px))
         .flatten();
     if !trusted && carried.is_none() {
         return None;

@@ -31,6 +31,8 @@ const AGREEMENT: f64 = 4.0;
 /// far a track's newest samples typically stray from it.
 pub(super) struct Neighbours {
     grid: PointGrid,
+    /// The rectified images' focal length, pixels.
+    focal_px: f64,
     velocities: Vec<Vector3<f64>>,
     /// Their newest samples' depths, metres.
     depths: Vec<f64>,
@@ -40,7 +42,7 @@ pub(super) struct Neighbours {
 
 impl Neighbours {
     /// The motion of those of `tracks` with at least `mature` samples, indexed by their order.
-    pub(super) fn of(tracks: &[&Track3d], mature: usize) -> Self {
+    pub(super) fn of(tracks: &[&Track3d], mature: usize, focal_px: f64) -> Self {
         // Each track's motion and stray on its own: both cores where they hold tracks enough,
         // in the tracks' order.
         let motions: Vec<_> = tracks
@@ -69,6 +71,7 @@ impl Neighbours {
         }
         let mut neighbours = Self {
             grid: PointGrid::new(seen.iter().map(|&(i, s, _)| (s.left_rect, i)), GRID_CELL_PX),
+            focal_px,
             velocities,
             depths,
             scatter: None,
@@ -106,12 +109,24 @@ impl Neighbours {
 
     /// Where a track too young for a motion of its own (the `own`-th) is carried at `t_s` by
     /// the flow around it: its newest sample moved at its neighbours' median velocity. Only
-    /// where the flow is known (enough mature tracks to judge by) and the track lies among its
-    /// neighbours in depth: a young ghost in front of or behind every track around it is where
-    /// no flow has been seen, and a flow carried there would move its image as no particle's.
-    pub(super) fn carry(&self, track: &Track3d, own: usize, t_s: f64) -> Option<Point3<f64>> {
+    /// where the flow is known (enough mature tracks to judge by), where it predicts the mature
+    /// tracks themselves to within `reach_px` in the image over that time (in a vortex a
+    /// particle's neighbours move unlike it: a carry searched no wider than a particle image
+    /// finds another particle), and where the track lies among its neighbours in depth: a
+    /// young ghost in front of or behind every track around it is where no flow has been seen,
+    /// and a flow carried there would move its image as no particle's.
+    pub(super) fn carry(
+        &self,
+        track: &Track3d,
+        own: usize,
+        t_s: f64,
+        reach_px: f64,
+    ) -> Option<Point3<f64>> {
         let last = track.samples.back()?;
-        self.scatter?;
+        let [_, across] = self.scatter?;
+        if across * self.focal_px * (t_s - last.t_s) > reach_px {
+            return None;
+        }
         let near = self.nearest(last.left_rect, own)?;
         let depths = near.iter().map(|&i| self.depths[i]);
         let nearest = depths.clone().fold(f64::INFINITY, f64::min);
@@ -175,6 +190,11 @@ mod tests {
     use nalgebra::Point3;
     use std::collections::VecDeque;
 
+    /// The tracks' image scale (their left image points are their positions times it) and how
+    /// far from a carried prediction its particle is looked for, pixels.
+    const FOCAL_PX: f64 = 1000.0;
+    const REACH_PX: f64 = 4.0;
+
     /// A track of `frames` samples moving at `velocity` from `start`, with a little noise (up to
     /// `wobble` metres) along its line of sight.
     fn track(start: Point3<f64>, velocity: Vector3<f64>, frames: u64, wobble: f64) -> Track3d {
@@ -222,7 +242,7 @@ mod tests {
         tracks.push(track(at, Vector3::x() * 0.1, 3, 1e-5));
         // A ghost at the wrong depth: its image moves with the flow, but not its 3D motion.
         tracks.push(track(at, Vector3::new(0.07, 0.0, -0.02), 3, 1e-5));
-        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10, FOCAL_PX);
         let n = tracks.len();
         assert!(neighbours.vouch_for(&tracks[n - 2], n - 2));
         assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
@@ -241,17 +261,19 @@ mod tests {
         let mut behind = track(Point3::new(0.02, 0.02, 1.0), Vector3::zeros(), 1, 0.0);
         behind.samples[0].left_rect = tracks[tracks.len() - 1].samples[0].left_rect;
         tracks.push(behind);
-        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10, FOCAL_PX);
         let n = tracks.len();
         let carried = neighbours
-            .carry(&tracks[n - 2], n - 2, 0.3)
+            .carry(&tracks[n - 2], n - 2, 0.3, REACH_PX)
             .expect("carried");
         // Its one sample was at t = 0.1 s; the flow moves it 0.1 m/s along x for 0.2 s.
         assert!(
             (carried - Point3::new(0.04, 0.02, 0.5)).norm() < 1e-3,
             "{carried}"
         );
-        assert!(neighbours.carry(&tracks[n - 1], n - 1, 0.3).is_none());
+        assert!(neighbours
+            .carry(&tracks[n - 1], n - 1, 0.3, REACH_PX)
+            .is_none());
     }
 
     #[test]
@@ -263,9 +285,36 @@ mod tests {
             3,
             1e-5,
         ));
-        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10);
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10, FOCAL_PX);
         let n = tracks.len();
         assert!(!neighbours.vouch_for(&tracks[n - 1], n - 1));
-        assert!(neighbours.carry(&tracks[n - 1], n - 1, 0.4).is_none());
+        assert!(neighbours
+            .carry(&tracks[n - 1], n - 1, 0.4, REACH_PX)
+            .is_none());
+    }
+
+    #[test]
+    fn where_neighbours_move_unlike_each_other_a_new_pair_is_not_carried() {
+        // A vortex at 9 rad/s about the grid's centre: neighbours 1 cm apart differ by 9 cm/s,
+        // so over 0.2 s their flow misses a particle by tens of pixels.
+        let centre = Point3::new(0.02, 0.02, 0.5);
+        let mut tracks: Vec<Track3d> = (0..25)
+            .map(|i| {
+                let start = Point3::new(0.01 * (i % 5) as f64, 0.01 * (i / 5) as f64, 0.5);
+                let r = start - centre;
+                track(start, Vector3::new(-r.y, r.x, 0.0) * 9.0, 10, 0.0)
+            })
+            .collect();
+        tracks.push(track(
+            Point3::new(0.025, 0.02, 0.5),
+            Vector3::zeros(),
+            1,
+            0.0,
+        ));
+        let neighbours = Neighbours::of(&tracks.iter().collect::<Vec<_>>(), 10, FOCAL_PX);
+        let n = tracks.len();
+        assert!(neighbours
+            .carry(&tracks[n - 1], n - 1, 0.3, REACH_PX)
+            .is_none());
     }
 }
