@@ -16,9 +16,9 @@
 use nalgebra::{Point3, Vector3};
 
 use super::flow::nearest_in_space;
-use super::Sample;
+use super::{left_image_grid, Sample};
 use crate::geometry::Rectification;
-use crate::spatial::{votes_needed, PointGrid, GRID_CELL_PX};
+use crate::spatial::{votes_needed, PointGrid};
 
 /// Neighbours that vote on a particle's step.
 const NEIGHBOURS: usize = 8;
@@ -55,7 +55,7 @@ pub(super) fn steps(
     if before.len() <= NEIGHBOURS || after.is_empty() {
         return Vec::new();
     }
-    let before_grid = PointGrid::new(before.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
+    let before_grid = left_image_grid(before);
     let after_positions: Vec<Point3<f64>> = after.iter().map(|s| s.point_in_world).collect();
     let candidates: Vec<Candidates> = before
         .iter()
@@ -255,14 +255,7 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let (b, a): (Vec<&Sample>, Vec<&Sample>) =
             (before.iter().collect(), after.iter().collect());
-        let grid = grid_of(&a);
-        let steps = steps(
-            (&b, &vec![None; b.len()]),
-            (&a, &grid),
-            (100.0, None),
-            &rect,
-            0.1,
-        );
+        let steps = unknown_steps(&b, &a, &rect);
         let right = steps.iter().filter(|(i, j)| i == j).count();
         assert!(right >= 75, "{right} of {} right", before.len());
         assert_eq!(right, steps.len(), "no wrong step: {steps:?}");
@@ -284,18 +277,22 @@ pub(super) mod tests {
         let (before, after) = vortex(&rect);
         let b: Vec<&Sample> = before.iter().take(NEIGHBOURS).collect();
         let a: Vec<&Sample> = after.iter().collect();
-        let grid = grid_of(&a);
-        let steps = steps(
-            (&b, &vec![None; b.len()]),
-            (&a, &grid),
-            (100.0, None),
-            &rect,
-            0.1,
-        );
-        assert!(steps.is_empty());
+        assert!(unknown_steps(&b, &a, &rect).is_empty());
     }
 
-    fn grid_of(samples: &[&Sample]) -> PointGrid {
-        PointGrid::new(samples.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX)
+    /// The steps from `before` to `after` by consensus alone (no step known), within 100 px.
+    fn unknown_steps(
+        before: &[&Sample],
+        after: &[&Sample],
+        rect: &Rectification,
+    ) -> Vec<(usize, usize)> {
+        let grid = left_image_grid(after);
+        steps(
+            (before, &vec![None; before.len()]),
+            (after, &grid),
+            (100.0, None),
+            rect,
+            0.1,
+        )
     }
 }

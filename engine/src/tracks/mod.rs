@@ -536,7 +536,7 @@ impl Tracks {
             }
         }
         after.extend(births.iter().map(|b| &b.sample).filter(|s| seen(s)));
-        let after_grid = PointGrid::new(after.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX);
+        let after_grid = left_image_grid(&after);
         let steps = consensus::steps(
             (&before, &known),
             (&after, &after_grid),
@@ -572,6 +572,11 @@ impl Tracks {
         let kept = self.limits.retired_frames;
         self.retired.retain(|t| seq - t.last_seq() <= kept);
     }
+}
+
+/// `samples` indexed by where the left image saw them (rectified), each by its index.
+fn left_image_grid(samples: &[&Sample]) -> PointGrid {
+    PointGrid::new(samples.iter().map(|s| s.left_rect).zip(0..), GRID_CELL_PX)
 }
 
 /// The median distance in the left image from each of `samples` to its nearest neighbour

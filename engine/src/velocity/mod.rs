@@ -486,8 +486,9 @@ impl Velocities {
     /// `+-w` frames may miss at most `max_missing_per_side` frames (to a gap, or to the track's
     /// start or end; a narrower window may miss none), and as many again seen by one camera
     /// only ([`Self::fills`]). `w` is M, or narrower down to 2 where the particle travels
-    /// `min_window_travel_px` within it or every wider window is rough; with `adaptive_fit` the fit is chosen per component
-    /// among the windows the track supports (returned with the vector).
+    /// `min_window_travel_px` within it or every wider window is rough; with `adaptive_fit` the
+    /// fit is chosen per component among the windows the track supports (returned with the
+    /// vector).
     fn centred_vector(&self, track: &Track3d, seq: u64) -> Option<Result<Centred, ()>> {
         let velocity = &self.config;
         let m = velocity.half_window_frames as u64;
@@ -672,22 +673,19 @@ impl Velocities {
     /// it barely moved).
     fn narrowest_window(&self, samples: &[&Sample], m: u64) -> u64 {
         let travel_px = self.config.min_window_travel_px;
-        let (mut first, mut last, mut path_px) = (None::<u64>, None::<&Sample>, 0.0);
-        for &s in samples {
-            if let Some(l) = last {
-                path_px += (s.left_rect.x - l.left_rect.x).hypot(s.left_rect.y - l.left_rect.y);
-            }
-            first.get_or_insert(s.seq);
-            last = Some(s);
-        }
-        let frames = match (first, last) {
-            (Some(first), Some(last)) if last.seq > first => last.seq - first,
-            _ => return m,
+        let (Some(first), Some(last)) = (samples.first(), samples.last()) else {
+            return m;
         };
-        if travel_px <= 0.0 {
+        if travel_px <= 0.0 || last.seq <= first.seq {
             return m;
         }
-        let speed_px = path_px / frames as f64;
+        let path_px: f64 = samples
+            .windows(2)
+            .map(|p| {
+                (p[1].left_rect.x - p[0].left_rect.x).hypot(p[1].left_rect.y - p[0].left_rect.y)
+            })
+            .sum();
+        let speed_px = path_px / (last.seq - first.seq) as f64;
         let frames_each_side = (travel_px / (2.0 * speed_px)).ceil();
         if frames_each_side.is_finite() {
             (frames_each_side as u64).clamp(MIN_HALF_WINDOW.min(m), m)
