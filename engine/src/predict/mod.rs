@@ -2,11 +2,15 @@
 //! time, in the world frame (so head motion is no prediction error), from its own recent
 //! samples; the frame's pose and the rectification carry the prediction into both images.
 //!
-//! Two models predict: a line through the last few samples and a quadratic through a few more.
-//! Each track scores both against where its particle was then found and follows the one that
-//! has missed less (a vortex's curved path wants the quadratic, a noisy straight one the line);
-//! before its first prediction it scores them on its own newest samples, each predicted from
-//! the ones before it.
+//! Three models predict: a line through the last few samples, a quadratic through a few more,
+//! and the quadratic through the newest three (a path turning by a large angle per frame
+//! leaves a quadratic over six samples behind). Each track scores all three against where its
+//! particle was then found and follows the one that has missed least (a vortex's curved path
+//! wants a quadratic, a noisy straight one the line); before its first prediction it scores
+//! them on its own newest samples, each predicted from the ones before it. The newest three
+//! samples extrapolate their noise about four times over, so a noisy track would follow them
+//! now and then by chance alone: they are followed only where the flow turns, where at least a
+//! quarter of the tracks have missed less with them than with either other model.
 //! Its search radius is a few times its own mean miss in the images, learnt the same way; a
 //! track that has not been scored yet borrows the scene's.
 //!
@@ -52,16 +56,26 @@ const HINDCAST_SAMPLES: usize = 4;
 /// The models a track predicts with.
 const LINE: usize = 0;
 const QUADRATIC: usize = 1;
+const TURNING: usize = 2;
+const MODELS: usize = 3;
+/// Samples the turning model is the quadratic through: the fewest that follow a turn.
+const TURNING_SAMPLES: usize = 3;
+/// The share of scored tracks that must have missed less with the turning model for the flow
+/// to be taken as turning: a quarter, as a vortex's slow centre or a shear's slow side may
+/// hold most of them. In a straight flow (noise alone) under a twentieth of them do.
+const TURNING_SHARE: f64 = 0.25;
+/// Tracks scored on every model needed to tell whether the flow turns.
+const TURNING_TEACHERS: usize = 8;
 
 /// What a track has learnt of how well it predicts itself.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Predictor {
-    /// Running mean squared 3D miss of the line and of the quadratic, metres squared.
-    miss_sq_m: [Option<f64>; 2],
+    /// Running mean squared 3D miss of each model, metres squared.
+    miss_sq_m: [Option<f64>; MODELS],
     /// Running mean squared miss of the followed model in the images, rectified pixels squared.
     miss_sq_px: Option<f64>,
     /// The last prediction of each model, and the frame it was for, to be scored when found.
-    pending: Option<(u64, [Option<Point3<f64>>; 2])>,
+    pending: Option<(u64, [Option<Point3<f64>>; MODELS])>,
 }
 
 impl Predictor {
@@ -92,12 +106,12 @@ impl Predictor {
         }
     }
 
-    /// Scores both models on the track's own newest samples ([`HINDCAST_SAMPLES`]), each
-    /// predicted from the samples before it, where neither has been scored yet: a track's
+    /// Scores the models on the track's own newest samples ([`HINDCAST_SAMPLES`]), each
+    /// predicted from the samples before it, where none has been scored yet: a track's
     /// first prediction then follows the model that fits its path (a line from a vortex's
     /// curve misses by its whole bend, and claims whatever lies there).
     fn hindcast(&mut self, samples: &VecDeque<Sample>) {
-        if self.miss_sq_m != [None, None] {
+        if self.miss_sq_m != [None; MODELS] {
             return;
         }
         // Each hindcast sample is predicted from the models' samples before it.
@@ -113,12 +127,24 @@ impl Predictor {
         }
     }
 
-    /// The model to follow: the quadratic once it has missed less than the line.
-    fn followed(&self) -> usize {
-        match self.miss_sq_m {
-            [Some(line), Some(quadratic)] if quadratic < line => QUADRATIC,
-            _ => LINE,
-        }
+    /// The model to follow: the one that has missed least, the line until another has; the
+    /// turning model only where the flow `turns`.
+    fn followed(&self, turns: bool) -> usize {
+        let offered = if turns { MODELS } else { TURNING };
+        (QUADRATIC..offered).fold(LINE, |best, model| {
+            match (self.miss_sq_m[model], self.miss_sq_m[best]) {
+                (Some(miss), Some(least)) if miss < least => model,
+                _ => best,
+            }
+        })
+    }
+
+    /// Whether the turning model has missed less than both others, once all are scored.
+    fn turns(&self) -> Option<bool> {
+        let [Some(line), Some(quadratic), Some(turning)] = self.miss_sq_m else {
+            return None;
+        };
+        Some(turning < line.min(quadratic))
     }
 }
 
@@ -175,6 +201,7 @@ pub(crate) fn predict<'a>(
         .collect();
     let views: Vec<&Track3d> = recent.iter().map(|(_, t)| &**t).collect();
     let neighbours = Neighbours::of(&views, MIN_SAMPLES, rect.focal_px);
+    let turns = flow_turns(&views);
     let widest = image_radius_px.max(MIN_GATE_PX);
     // Each track predicts on its own: both cores where they hold tracks enough (see
     // [`TRACKS_PER_TASK`]), in the tracks' order.
@@ -183,7 +210,7 @@ pub(crate) fn predict<'a>(
         .with_min_len(TRACKS_PER_TASK)
         .enumerate()
         .filter_map(|(i, (key, track))| {
-            let p = predict_one(track, i, (&neighbours, widest), (seq, t_s))?;
+            let p = predict_one(track, i, (&neighbours, widest, turns), (seq, t_s))?;
             let (left, right) = rect.project(&(rig_from_world * p))?;
             let prediction = Prediction {
                 key,
@@ -212,15 +239,23 @@ pub(crate) fn predict<'a>(
         .collect()
 }
 
+/// Whether the flow turns: at least [`TURNING_SHARE`] of the `tracks` scored on every model
+/// have missed less with the turning model than with either other.
+fn flow_turns(tracks: &[&Track3d]) -> bool {
+    let verdicts: Vec<bool> = tracks.iter().filter_map(|t| t.predictor.turns()).collect();
+    let turning = verdicts.iter().filter(|&&turns| turns).count();
+    verdicts.len() >= TURNING_TEACHERS && turning as f64 >= TURNING_SHARE * verdicts.len() as f64
+}
+
 /// Where a track (the `own`-th the `neighbours` were built from) puts its particle at
 /// frame `seq`, time `t_s`, in the world, if it predicts at all: trusted on its own samples
 /// or vouched for by its neighbours, or carried by their flow where that flow predicts its
-/// neighbours within `widest_px` (the widest gate); the predictions it makes are kept to be
-/// scored when it is found.
+/// neighbours within `widest_px` (the widest gate); the turning model is followed only where
+/// the flow `turns`. The predictions it makes are kept to be scored when it is found.
 fn predict_one(
     track: &mut Track3d,
     own: usize,
-    (neighbours, widest_px): (&Neighbours, f64),
+    (neighbours, widest_px, turns): (&Neighbours, f64, bool),
     (seq, t_s): (u64, f64),
 ) -> Option<Point3<f64>> {
     let n = track.samples.len();
@@ -232,7 +267,7 @@ fn predict_one(
         return None;
     }
     let models = match carried {
-        Some(p) => [Some(p), None],
+        Some(p) => [Some(p), None, None],
         None => {
             track.predictor.hindcast(&track.samples);
             model_predictions(track, t_s)
@@ -240,26 +275,34 @@ fn predict_one(
     };
     // A carried prediction is the neighbours' flow, not either model's: only its miss in the
     // images is the track's (it sets the next gate).
-    let scored = if carried.is_some() { [None; 2] } else { models };
+    let scored = if carried.is_some() {
+        [None; MODELS]
+    } else {
+        models
+    };
     track.predictor.pending = Some((seq, scored));
-    models[track.predictor.followed()].or(models[LINE])
+    models[track.predictor.followed(turns)].or(models[LINE])
 }
 
-/// Where the line and the quadratic put the track's particle at `t_s`.
-fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; 2] {
+/// Where the three models put the track's particle at `t_s`.
+fn model_predictions(track: &Track3d, t_s: f64) -> [Option<Point3<f64>>; MODELS] {
     models_at(&newest(&track.samples, QUADRATIC_SAMPLES), t_s)
 }
 
-/// Where the line (through the newest [`LINE_SAMPLES`] of `history`, time and position) and
-/// the quadratic (through the newest [`QUADRATIC_SAMPLES`], once there are more than the
-/// line's) put a particle at `t_s`.
-fn models_at(history: &[(f64, Point3<f64>)], t_s: f64) -> [Option<Point3<f64>>; 2] {
+/// Where the line (through the newest [`LINE_SAMPLES`] of `history`, time and position), the
+/// quadratic (through the newest [`QUADRATIC_SAMPLES`], once there are more than the line's)
+/// and the turning model (the quadratic through the newest [`TURNING_SAMPLES`]) put a particle
+/// at `t_s`.
+fn models_at(history: &[(f64, Point3<f64>)], t_s: f64) -> [Option<Point3<f64>>; MODELS] {
     let n = history.len();
     let line = fit_line(&history[n.saturating_sub(LINE_SAMPLES)..], t_s).map(|f| f.position);
     let quadratic = (n > LINE_SAMPLES)
         .then(|| quadratic_position(&history[n.saturating_sub(QUADRATIC_SAMPLES)..], t_s))
         .flatten();
-    [line, quadratic]
+    let turning = (n >= TURNING_SAMPLES)
+        .then(|| quadratic_position(&history[n - TURNING_SAMPLES..], t_s))
+        .flatten();
+    [line, quadratic, turning]
 }
 
 /// A track's newest `n` samples as (time, position in the world).
@@ -339,7 +382,7 @@ mod tests {
     #[test]
     fn a_curved_path_is_followed_by_the_quadratic_once_it_has_missed_less() {
         let (t, path) = followed_on_a_curve(Some(0.5));
-        assert_eq!(t.predictor.followed(), QUADRATIC);
+        assert_eq!(t.predictor.followed(false), QUADRATIC);
         let models = model_predictions(&t, 1.5);
         let miss = (models[QUADRATIC].expect("fitted") - path(1.5)).norm();
         assert!(miss < 1e-9, "a quadratic path is predicted exactly: {miss}");
@@ -358,16 +401,68 @@ mod tests {
         let at = seq as f64 * 0.1;
         let pose = Isometry3::identity();
         let p = predict(std::iter::once((9, &mut t)), seq, at, &pose, &rect, 2, 2.0);
-        assert_eq!(t.predictor.followed(), QUADRATIC);
+        assert_eq!(t.predictor.followed(false), QUADRATIC);
         let (left, _) = rect.project(&path(at)).expect("in front");
         let miss = (p[0].left.x - left.x).hypot(p[0].left.y - left.y);
         assert!(miss < 1e-6, "{miss} px");
     }
 
+    /// Particles on circles about the same axis, `turn` radians a frame (0.1 s), their
+    /// positions off by `noise_m` (a fixed pseudo-random pattern); `count` tracks of
+    /// [`MIN_SAMPLES`] samples, each scored on its own newest samples.
+    fn circling(count: usize, turn: f64, noise_m: f64) -> Vec<Track3d> {
+        (0..count)
+            .map(|k| {
+                let (radius, phase) = (0.03 + 0.004 * k as f64, k as f64);
+                // A hash of the time: uncorrelated from one sample to the next.
+                let jitter = move |t: f64| {
+                    let h = ((t * 129.898 + k as f64 * 78.233).sin() * 43_758.545).fract();
+                    2.0 * h * noise_m
+                };
+                let path = move |t: f64| {
+                    let angle = phase + turn * t / 0.1;
+                    let n = jitter(t);
+                    Point3::new(radius * angle.cos() + n, radius * angle.sin() - n, 0.5 + n)
+                };
+                let mut t = track(path, MIN_SAMPLES as u64);
+                t.predictor.hindcast(&t.samples);
+                t
+            })
+            .collect()
+    }
+
+    #[test]
+    fn where_the_flow_turns_fast_tracks_follow_the_quadratic_through_their_newest_samples() {
+        let tracks = circling(10, 0.4, 0.0);
+        let views: Vec<&Track3d> = tracks.iter().collect();
+        assert!(flow_turns(&views));
+        for t in &tracks {
+            assert_eq!(t.predictor.followed(true), TURNING);
+            // Left to the other two, the track would follow the quadratic over six samples,
+            // which a turn of 0.4 rad a frame leaves behind.
+            assert_eq!(t.predictor.followed(false), QUADRATIC);
+        }
+    }
+
+    #[test]
+    fn where_tracks_only_scatter_the_flow_does_not_turn() {
+        // Slow circles with centroid noise: the newest three samples extrapolate the noise
+        // fourfold, and the line through four misses least.
+        let tracks = circling(20, 0.02, 0.001);
+        let views: Vec<&Track3d> = tracks.iter().collect();
+        let turning = tracks.iter().filter(|t| t.predictor.turns() == Some(true));
+        let n = turning.count();
+        assert!(n < 5, "{n} of 20 tracks follow the turning model");
+        assert!(!flow_turns(&views));
+        // Too few tracks tell nothing.
+        let fast = circling(TURNING_TEACHERS - 1, 0.4, 0.0);
+        assert!(!flow_turns(&fast.iter().collect::<Vec<_>>()));
+    }
+
     #[test]
     fn particles_the_chain_finds_teach_the_model_but_not_the_gate() {
         let (t, _) = followed_on_a_curve(None);
-        assert_eq!(t.predictor.followed(), QUADRATIC);
+        assert_eq!(t.predictor.followed(false), QUADRATIC);
         assert_eq!(t.predictor.sigma_px(), None);
     }
 
