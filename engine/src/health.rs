@@ -106,11 +106,16 @@ impl<'a> Words<'a> {
                 window
             };
         let windows = if shortest_window < window {
-            format!(
-                "{shortest_window} to {window} frames (narrower where a particle travels {} px \
-                 within it, or turns faster than a wider window follows)",
-                velocity.min_window_travel_px
-            )
+            let turns = "turns faster than a wider window follows";
+            let narrower = if velocity.min_window_travel_px > 0.0 {
+                format!(
+                    "a particle travels {} px within it, or {turns}",
+                    velocity.min_window_travel_px
+                )
+            } else {
+                format!("a particle {turns}")
+            };
+            format!("{shortest_window} to {window} frames (narrower where {narrower})")
         } else {
             format!("{window} frames")
         };

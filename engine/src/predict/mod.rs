@@ -141,10 +141,10 @@ impl Predictor {
 
     /// Whether the turning model has missed less than both others, once all are scored.
     fn turns(&self) -> Option<bool> {
-        let [Some(line), Some(quadratic), Some(turning)] = self.miss_sq_m else {
-            return None;
-        };
-        Some(turning < line.min(quadratic))
+        self.miss_sq_m
+            .iter()
+            .all(Option::is_some)
+            .then(|| self.followed(true) == TURNING)
     }
 }
 
